@@ -1,0 +1,1 @@
+"""The ECU firmware: pure, deterministic, fixed-step. No I/O, no clock, no randomness."""

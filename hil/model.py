@@ -1,0 +1,63 @@
+"""Linear quarter-car model (paper Eq. (2)-(6), corrected by errata 1-3).
+
+State ``x = [zs_dot, zt_dot, zs, zt, zf]`` (body and wheel velocity, body and wheel
+displacement, road height), input the actuator force F (pushing body up and wheel down),
+disturbance unit white noise w driving the road filter of Eq. (1) at constant speed.
+Outputs ``y = [BA, SWS, DTD] = [zs_ddot, zs - zt, zt - zf]``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.config import VehicleParams
+from hil.road import DEFAULT_CUTOFF_N_PER_M, road_noise_gain
+
+OUTPUTS = ("ba", "sws", "dtd")
+
+
+@dataclass(frozen=True)
+class LinearModel:
+    A: np.ndarray  # (5, 5)
+    B: np.ndarray  # (5,)   force input
+    G: np.ndarray  # (5,)   white-noise input
+    C: np.ndarray  # (3, 5) outputs BA, SWS, DTD
+    D: np.ndarray  # (3,)   force feedthrough (BA only)
+
+
+def mechanics(vp: VehicleParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """4-state mechanics ``[zs_dot, zt_dot, zs, zt]``: (A4, B_force, B_road)."""
+    ms, mt = vp.sprung_mass_kg, vp.unsprung_mass_kg
+    ks, cs, kt = vp.spring_stiffness_n_per_m, vp.damping_n_s_per_m, vp.tire_stiffness_n_per_m
+    A4 = np.array([
+        [-cs / ms, cs / ms, -ks / ms, ks / ms],
+        [cs / mt, -cs / mt, ks / mt, -(ks + kt) / mt],
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+    ])
+    b_force = np.array([1.0 / ms, -1.0 / mt, 0.0, 0.0])
+    b_road = np.array([0.0, kt / mt, 0.0, 0.0])  # errata 1: the road enters through k_t
+    return A4, b_force, b_road
+
+
+def linear_model(vp: VehicleParams, gq_m3: float, speed_mps: float, convention: str = "iso",
+                 cutoff_n_per_m: float = DEFAULT_CUTOFF_N_PER_M) -> LinearModel:
+    """The 5-state model at constant speed: road pole -2*pi*f0 with f0 = n_c*v."""
+    A4, b_force, b_road = mechanics(vp)
+    A = np.zeros((5, 5))
+    A[:4, :4] = A4
+    A[:4, 4] = b_road
+    A[4, 4] = -2.0 * math.pi * cutoff_n_per_m * speed_mps
+    B = np.append(b_force, 0.0)
+    G = np.zeros(5)
+    G[4] = road_noise_gain(gq_m3, speed_mps, convention)
+    C = np.array([
+        A[0],                              # BA (without the force term, see D)
+        [0.0, 0.0, 1.0, -1.0, 0.0],        # SWS (errata 3)
+        [0.0, 0.0, 0.0, 1.0, -1.0],        # DTD
+    ])
+    D = np.array([B[0], 0.0, 0.0])
+    return LinearModel(A, B, G, C, D)

@@ -1,0 +1,1 @@
+"""Offline engineering tools: analysis, tuning, table generation."""

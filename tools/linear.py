@@ -1,0 +1,224 @@
+"""Exact stationary statistics of the linear quarter car and the physical limits of control.
+
+* Passive and closed-loop RMS values come from the continuous Lyapunov equation
+  ``A_cl P + P A_cl^T + G G^T = 0`` (no simulation, no sampling error).
+* LQR with the full state (road state included) and the cross term N (BA contains the force)
+  minimises any weighted sum of the output variances over *all* causal controllers, because the
+  plant is linear and the road input Gaussian. The set of achievable variance triples is convex,
+  so every constrained optimum is reached by LQR for some weights, and the Lagrange dual over
+  the weights is exact (no duality gap). ``limits`` maximises that dual.
+
+Variances are normalised by the passive car's, so the problems are scale-free (independent of
+the grade; the speed enters only through the road pole f0 = n_c v).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
+from scipy.optimize import minimize
+
+from hil.model import LinearModel
+
+# Regularisers in scaled units (every passive variance is 1): a tiny weight on the force and on
+# every state keeps the Riccati equation well posed at the corners of the weight space (e.g. no
+# SWS weight, where the BA-cancelling force would leave the body free). They change the limits
+# by about 1e-9.
+_EPS_R = 1e-9
+_EPS_Q = 1e-9
+
+
+def state_covariance(A_cl: np.ndarray, G: np.ndarray) -> np.ndarray:
+    if np.max(np.linalg.eigvals(A_cl).real) >= 0.0:
+        raise ValueError("closed loop is not stable")
+    P = solve_continuous_lyapunov(A_cl, -np.outer(G, G))
+    return 0.5 * (P + P.T)
+
+
+def output_covariance(model: LinearModel, K: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Variances of [BA, SWS, DTD] and of the force under u = -K x (passive if K is None)."""
+    if K is None:
+        K = np.zeros(model.A.shape[0])
+    A_cl = model.A - np.outer(model.B, K)
+    P = state_covariance(A_cl, model.G)
+    C_cl = model.C - np.outer(model.D, K)
+    var = np.einsum("ij,jk,ik->i", C_cl, P, C_cl)
+    return var, float(K @ P @ K)
+
+
+def passive_rms(model: LinearModel) -> np.ndarray:
+    """Exact RMS of [BA (m/s^2), SWS (m), DTD (m)] of the passive car."""
+    var, _ = output_covariance(model)
+    return np.sqrt(var)
+
+
+def lqr_gain(model: LinearModel, weights: np.ndarray, r: float = 0.0,
+             q_state: float = 0.0) -> np.ndarray:
+    """K minimising E[sum_i w_i y_i^2 + r u^2 + q_state |x|^2] with y = C x + D u
+    (cross term N = C^T W D)."""
+    W = np.diag(np.asarray(weights, dtype=float))
+    Q = model.C.T @ W @ model.C + q_state * np.eye(model.A.shape[0])
+    R = float(model.D @ W @ model.D) + r
+    if R <= 0.0:
+        raise ValueError("LQR needs a positive force weight (weight on BA or r > 0)")
+    N = model.C.T @ W @ model.D
+    B = model.B.reshape(-1, 1)
+    P = solve_continuous_are(model.A, B, 0.5 * (Q + Q.T), np.array([[R]]), s=N.reshape(-1, 1))
+    return ((B.T @ P + N.reshape(1, -1)) / R).ravel()
+
+
+@dataclass
+class Normalised:
+    """The model rescaled for numerical conditioning: outputs divided by their passive RMS
+    (passive variances are all 1), states by their passive standard deviation, and the force
+    by m_s * BA_passive. ``physical_gain`` maps a gain back to u = -K x in SI units."""
+
+    model: LinearModel
+    passive: np.ndarray   # passive RMS of [BA, SWS, DTD], SI units
+    state_scale: np.ndarray
+    force_scale: float
+
+    @classmethod
+    def of(cls, model: LinearModel) -> "Normalised":
+        P = state_covariance(model.A, model.G)
+        passive = passive_rms(model)
+        T = np.sqrt(np.diag(P))
+        Ti = np.diag(1.0 / T)
+        S = np.diag(1.0 / passive)
+        su = 1.0 / abs(model.D[0] / passive[0])  # force giving one passive BA RMS
+        scaled = LinearModel(Ti @ model.A @ np.diag(T), Ti @ model.B * su, Ti @ model.G,
+                             S @ model.C @ np.diag(T), S @ model.D * su)
+        return cls(scaled, passive, T, su)
+
+    def physical_gain(self, K: np.ndarray) -> np.ndarray:
+        return self.force_scale * K / self.state_scale
+
+    def lqr(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K in scaled units, normalised variances) of the LQR for these weights."""
+        try:
+            K = lqr_gain(self.model, weights, _EPS_R, _EPS_Q)
+        except ValueError:
+            # a corner of the weight space where the Hamiltonian has modes near the imaginary
+            # axis: a larger (still negligible) state weight moves them off it
+            K = lqr_gain(self.model, weights, _EPS_R, 1e3 * _EPS_Q)
+        var, _ = output_covariance(self.model, K)
+        return K, var
+
+
+def _dual_max(norm: Normalised, objective: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """min J_obj s.t. J_i <= 1 for the other two outputs, by maximising the Lagrange dual
+    g(lam) = min_K J_obj + sum lam_i (J_i - 1) over lam >= 0 (Danskin: grad = J_i - 1)."""
+    others = [i for i in range(3) if i != objective]
+
+    def neg_dual(lam: np.ndarray) -> tuple[float, np.ndarray]:
+        w = np.zeros(3)
+        w[objective] = 1.0
+        w[others] = lam
+        _, var = norm.lqr(w)
+        g = var[objective] + float(lam @ (var[others] - 1.0))
+        return -g, -(var[others] - 1.0)
+
+    best = None
+    for start in ([1.0, 1.0], [0.1, 3.0], [3.0, 0.1]):
+        res = minimize(neg_dual, np.array(start), jac=True, method="L-BFGS-B",
+                       bounds=[(1e-6, 1e6)] * 2, options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 500})
+        if best is None or res.fun < best.fun:
+            best = res
+    lam = best.x
+    w = np.zeros(3)
+    w[objective] = 1.0
+    w[others] = lam
+    K, var = norm.lqr(w)
+    return -best.fun, w, K, var
+
+
+def _balanced(norm: Normalised) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """min_K max_i J_i = max over the simplex mu of min_K sum mu_i J_i (minimax duality)."""
+
+    def neg_dual(theta: np.ndarray) -> float:
+        mu = np.exp(theta - np.max(theta))
+        mu /= mu.sum()
+        _, var = norm.lqr(mu)
+        return -float(mu @ var)
+
+    best = None
+    for start in ([0.0, 0.0, 0.0], [1.0, -1.0, 0.0], [-1.0, 1.0, 0.5]):
+        res = minimize(neg_dual, np.array(start), method="Nelder-Mead",
+                       options={"xatol": 1e-9, "fatol": 1e-13, "maxiter": 4000})
+        if best is None or res.fun < best.fun:
+            best = res
+    mu = np.exp(best.x - np.max(best.x))
+    mu /= mu.sum()
+    K, var = norm.lqr(mu)
+    return -best.fun, mu, K, var
+
+
+def eq43_fitness(rms_ratios: np.ndarray) -> float:
+    """Paper Eq. (43): sum of RMS ratios to passive; +inf if Eq. (44) is violated."""
+    ratios = np.asarray(rms_ratios, dtype=float)
+    if np.any(ratios > 1.0):
+        return math.inf
+    return float(np.sum(ratios))
+
+
+def weights_from_log(z: np.ndarray) -> np.ndarray:
+    """Normalised LQR weights (q1 = 1) from log10(q2/q1), log10(q3/q1)."""
+    return np.array([1.0, 10.0 ** z[0], 10.0 ** z[1]])
+
+
+def _eq43_min(norm: Normalised) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Minimum of Eq. (43) under (44) over the Pareto frontier, which LQR weights trace.
+    The objective (a sum of square roots) is not convex, so: grid, then local refinement."""
+
+    def f(z: np.ndarray, penalty: bool = True) -> float:
+        _, var = norm.lqr(weights_from_log(z))
+        ratios = np.sqrt(var)
+        if penalty:
+            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - 1.0, 0.0)))
+        return eq43_fitness(ratios)
+
+    grid = np.linspace(-3.0, 5.0, 21)
+    scores = sorted((f(np.array([a, b])), a, b) for a in grid for b in grid)
+    best_z, best_val = None, math.inf
+    for _, a, b in scores[:4]:
+        res = minimize(f, np.array([a, b]), method="Nelder-Mead",
+                       options={"xatol": 1e-7, "fatol": 1e-12, "maxiter": 2000})
+        val = f(res.x, penalty=False)
+        if val < best_val:
+            best_z, best_val = res.x, val
+    q = weights_from_log(best_z)
+    K, var = norm.lqr(q)
+    return best_val, q, K, var
+
+
+@dataclass
+class LimitResult:
+    value: float              # the limit (ratio to passive, or Eq. (43) sum)
+    weights: np.ndarray       # LQR output weights on normalised [BA, SWS, DTD] achieving it
+    K: np.ndarray             # physical-units gain u = -K x
+    ratios: np.ndarray        # RMS ratios to passive of [BA, SWS, DTD] at that K
+
+    def as_dict(self) -> dict:
+        return {"value": self.value, "weights": self.weights.tolist(), "K": self.K.tolist(),
+                "ratios": {"ba": self.ratios[0], "sws": self.ratios[1], "dtd": self.ratios[2]}}
+
+
+def physical_limits(model: LinearModel) -> dict[str, LimitResult]:
+    """The exact limits of any causal controller with the full state (road included)."""
+    norm = Normalised.of(model)
+
+    def result(value: float, w: np.ndarray, K: np.ndarray, var: np.ndarray) -> LimitResult:
+        return LimitResult(value, w, norm.physical_gain(K), np.sqrt(var))
+
+    g, w, K, var = _dual_max(norm, objective=0)
+    comfort = result(math.sqrt(g), w, K, var)
+    g, w, K, var = _dual_max(norm, objective=2)
+    safety = result(math.sqrt(g), w, K, var)
+    t, mu, K, var = _balanced(norm)
+    balanced = result(math.sqrt(t), mu, K, var)
+    val, q, K, var = _eq43_min(norm)
+    eq43 = result(val, q, K, var)
+    return {"comfort": comfort, "safety": safety, "balanced": balanced, "eq43": eq43}
