@@ -37,8 +37,8 @@ def wk_analog() -> tuple[np.ndarray, np.ndarray]:
     hh = ([1.0, 0.0, 0.0], [1.0, w[0] / q1, w[0] ** 2])
     hl = ([w[1] ** 2], [1.0, w[1] / q1, w[1] ** 2])
     ht = ([w[3] ** 2 / w[2], w[3] ** 2], [1.0, w[3] / q4, w[3] ** 2])
-    hs = ([w[5] ** 2 / w[4] ** 2 * 1.0, w[5] ** 2 / w[4] ** 2 * w[4] / q5, w[5] ** 2],
-          [1.0, w[5] / q6, w[5] ** 2])
+    # H_s includes its gain (f5/f6)^2, so the numerator is monic like the denominator
+    hs = ([1.0, w[4] / q5, w[4] ** 2], [1.0, w[5] / q6, w[5] ** 2])
     b, a = np.array([1.0]), np.array([1.0])
     for nb, na in (hh, hl, ht, hs):
         b, a = np.polymul(b, nb), np.polymul(a, na)

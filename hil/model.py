@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import solve_continuous_lyapunov
 
 from hil.config import VehicleParams
 from hil.road import DEFAULT_CUTOFF_N_PER_M, road_noise_gain
@@ -61,3 +62,27 @@ def linear_model(vp: VehicleParams, gq_m3: float, speed_mps: float, convention: 
     ])
     D = np.array([B[0], 0.0, 0.0])
     return LinearModel(A, B, G, C, D)
+
+
+def state_covariance(A_cl: np.ndarray, G: np.ndarray) -> np.ndarray:
+    if np.max(np.linalg.eigvals(A_cl).real) >= 0.0:
+        raise ValueError("closed loop is not stable")
+    P = solve_continuous_lyapunov(A_cl, -np.outer(G, G))
+    return 0.5 * (P + P.T)
+
+
+def output_covariance(model: LinearModel, K: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Variances of [BA, SWS, DTD] and of the force under u = -K x (passive if K is None)."""
+    if K is None:
+        K = np.zeros(model.A.shape[0])
+    A_cl = model.A - np.outer(model.B, K)
+    P = state_covariance(A_cl, model.G)
+    C_cl = model.C - np.outer(model.D, K)
+    var = np.einsum("ij,jk,ik->i", C_cl, P, C_cl)
+    return var, float(K @ P @ K)
+
+
+def passive_rms(model: LinearModel) -> np.ndarray:
+    """Exact RMS of [BA (m/s^2), SWS (m), DTD (m)] of the passive car."""
+    var, _ = output_covariance(model)
+    return np.sqrt(var)

@@ -140,6 +140,10 @@ class Ledger:
 class QuarterCarPlant:
     """The plant. ``actuator=False`` gives the passive car (no motor, no screw friction)."""
 
+    # Back-EMF constant relative to the force constant. Physics says 1 (K_t = K_e in SI);
+    # tests set another value to show that the energy ledger detects the inconsistency.
+    _emf_scale = 1.0
+
     def __init__(self, cfg: VehicleConfig, *, actuator: bool = True, ledger: bool = False):
         self.cfg = cfg
         self.dt = cfg.sim.plant_dt_s
@@ -170,8 +174,8 @@ class QuarterCarPlant:
         self.ledger = Ledger()
         self.bump_contacts = 0
         self.lift_off_events = 0
-        self._in_contact = False
-        self._lifted = False
+        self.in_bump_contact = False
+        self.tire_lifted = False
         self.current_limited_steps = 0
         self._last_g = self._eta
 
@@ -191,8 +195,8 @@ class QuarterCarPlant:
         M[VS, FB] = 1.0 / self._ms
         M[VT, FW] = 1.0 / self._mt
         if enabled and self.has_actuator:
-            M[CUR, VS] = -self._K / self._L
-            M[CUR, VT] = self._K / self._L
+            M[CUR, VS] = -self._K * self._emf_scale / self._L
+            M[CUR, VT] = self._K * self._emf_scale / self._L
             M[CUR, CUR] = -self._R / self._L
             M[CUR, VOLT] = 1.0 / self._L
         M[ZF, ZFDOT] = 1.0
@@ -224,7 +228,7 @@ class QuarterCarPlant:
         self.ledger = Ledger()
         self.ledger.initial_mech_j = self.ledger.final_mech_j = self.mech_energy_j()
         self.bump_contacts = self.lift_off_events = self.current_limited_steps = 0
-        self._in_contact = self._lifted = False
+        self.in_bump_contact = self.tire_lifted = False
 
     def mech_energy_j(self) -> float:
         vs, vt, zs, zt, _ = self.x
@@ -304,11 +308,11 @@ class QuarterCarPlant:
             ledger.flyback_loss_j += self.inductor_energy_j()
             self.x[4] = 0.0
         fb, fw, contact, lifted = self._nonlinear_forces()
-        if contact and not self._in_contact:
+        if contact and not self.in_bump_contact:
             self.bump_contacts += 1
-        if lifted and not self._lifted:
+        if lifted and not self.tire_lifted:
             self.lift_off_events += 1
-        self._in_contact, self._lifted = contact, lifted
+        self.in_bump_contact, self.tire_lifted = contact, lifted
         disc = self._disc[(enabled, self._motoring() if enabled else True)]
         v_dc = ap.storage_voltage_v if regen else ap.bus_voltage_v
         volt = duty * v_dc if enabled else 0.0

@@ -134,11 +134,13 @@ def make_segment(grade: str | None = None, *, gq_m3: float | None = None, length
     return Segment(float(gq_m3), float(length_m), float(speed_mps), label)
 
 
-def constant_route(grade: str, speed_mps: float, duration_s: float,
-                   convention: str = "iso") -> Route:
+def constant_route(grade: str, speed_mps: float, duration_s: float, convention: str = "iso",
+                   cutoff_n_per_m: float = DEFAULT_CUTOFF_N_PER_M) -> Route:
     """One segment of one grade at one speed, lasting ``duration_s``."""
+    convention_factor(convention)
     seg = make_segment(grade, length_m=speed_mps * duration_s, speed_mps=speed_mps)
-    return Route(f"{grade}@{speed_mps:g}", (seg,), RoadSettings(convention=convention))
+    return Route(f"{grade}@{speed_mps:g}", (seg,),
+                 RoadSettings(convention=convention, cutoff_n_per_m=cutoff_n_per_m))
 
 
 # -- route files -----------------------------------------------------------------------------

@@ -18,10 +18,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
+from scipy.linalg import solve_continuous_are
 from scipy.optimize import minimize
 
-from hil.model import LinearModel
+from hil.model import LinearModel, output_covariance, passive_rms, state_covariance
 
 # Regularisers in scaled units (every passive variance is 1): a tiny weight on the force and on
 # every state keeps the Riccati equation well posed at the corners of the weight space (e.g. no
@@ -31,28 +31,18 @@ _EPS_R = 1e-9
 _EPS_Q = 1e-9
 
 
-def state_covariance(A_cl: np.ndarray, G: np.ndarray) -> np.ndarray:
-    if np.max(np.linalg.eigvals(A_cl).real) >= 0.0:
-        raise ValueError("closed loop is not stable")
-    P = solve_continuous_lyapunov(A_cl, -np.outer(G, G))
+def _care_eig(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: float) -> np.ndarray:
+    """Stabilising ARE solution from the stable eigenvectors of the Hamiltonian (no cross
+    term). More tolerant than the QZ reordering of eigenvalues close to the imaginary axis."""
+    n = A.shape[0]
+    H = np.block([[A, -np.outer(B, B) / R], [-Q, -A.T]])
+    w, V = np.linalg.eig(H)
+    stable = np.argsort(w.real)[:n]
+    if np.any(w.real[stable] >= 0.0):
+        raise ValueError("Hamiltonian has no stable n-dimensional subspace")
+    U = V[:, stable]
+    P = np.real(U[n:] @ np.linalg.inv(U[:n]))
     return 0.5 * (P + P.T)
-
-
-def output_covariance(model: LinearModel, K: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """Variances of [BA, SWS, DTD] and of the force under u = -K x (passive if K is None)."""
-    if K is None:
-        K = np.zeros(model.A.shape[0])
-    A_cl = model.A - np.outer(model.B, K)
-    P = state_covariance(A_cl, model.G)
-    C_cl = model.C - np.outer(model.D, K)
-    var = np.einsum("ij,jk,ik->i", C_cl, P, C_cl)
-    return var, float(K @ P @ K)
-
-
-def passive_rms(model: LinearModel) -> np.ndarray:
-    """Exact RMS of [BA (m/s^2), SWS (m), DTD (m)] of the passive car."""
-    var, _ = output_covariance(model)
-    return np.sqrt(var)
 
 
 def lqr_gain(model: LinearModel, weights: np.ndarray, r: float = 0.0,
@@ -66,8 +56,17 @@ def lqr_gain(model: LinearModel, weights: np.ndarray, r: float = 0.0,
         raise ValueError("LQR needs a positive force weight (weight on BA or r > 0)")
     N = model.C.T @ W @ model.D
     B = model.B.reshape(-1, 1)
-    P = solve_continuous_are(model.A, B, 0.5 * (Q + Q.T), np.array([[R]]), s=N.reshape(-1, 1))
-    return ((B.T @ P + N.reshape(1, -1)) / R).ravel()
+    try:
+        P = solve_continuous_are(model.A, B, 0.5 * (Q + Q.T), np.array([[R]]), s=N.reshape(-1, 1))
+    except (ValueError, np.linalg.LinAlgError):
+        # remove the cross term (A - B N^T / R, Q - N N^T / R) and use the eigenvector method
+        Ab = model.A - np.outer(model.B, N) / R
+        Qb = Q - np.outer(N, N) / R
+        P = _care_eig(Ab, model.B, 0.5 * (Qb + Qb.T), R)
+    K = ((B.T @ P + N.reshape(1, -1)) / R).ravel()
+    if np.max(np.linalg.eigvals(model.A - np.outer(model.B, K)).real) >= 0.0:
+        raise ValueError("LQR solution is not stabilising")
+    return K
 
 
 @dataclass
@@ -97,13 +96,20 @@ class Normalised:
         return self.force_scale * K / self.state_scale
 
     def lqr(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(K in scaled units, normalised variances) of the LQR for these weights."""
-        try:
-            K = lqr_gain(self.model, weights, _EPS_R, _EPS_Q)
-        except ValueError:
-            # a corner of the weight space where the Hamiltonian has modes near the imaginary
-            # axis: a larger (still negligible) state weight moves them off it
-            K = lqr_gain(self.model, weights, _EPS_R, 1e3 * _EPS_Q)
+        """(K in scaled units, normalised variances) of the LQR for these weights (any
+        positive scale: they are normalised to sum 1, which the regularisers refer to)."""
+        weights = np.asarray(weights, dtype=float)
+        weights = weights / weights.sum()
+        for q_state in (_EPS_Q, 1e3 * _EPS_Q, 1e5 * _EPS_Q):
+            try:
+                K = lqr_gain(self.model, weights, _EPS_R, q_state)
+                break
+            except ValueError:
+                # a corner of the weight space where the Hamiltonian has modes near the
+                # imaginary axis: a larger (still negligible) state weight moves them off it
+                continue
+        else:
+            raise ValueError(f"LQR has no stabilising solution for weights {weights}")
         var, _ = output_covariance(self.model, K)
         return K, var
 

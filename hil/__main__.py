@@ -1,0 +1,59 @@
+"""``python -m hil``: the bench's command line.
+
+    python -m hil drive --route full_road_section --seed 1 [--out DIR] [--json]
+    python -m hil routes
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from hil.cli import (add_json_argument, add_vehicle_argument, emit, route_or_exit, seed_arg,
+                     vehicle_or_exit)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m hil", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("drive", help="drive the passive car along a route; RMS per segment "
+                                     "against the exact (Lyapunov) values")
+    p.add_argument("--route", default="full_road_section",
+                   help="route TOML file or shipped route name (default: full_road_section)")
+    p.add_argument("--seed", type=seed_arg, default=1)
+    p.add_argument("--convention", choices=("iso", "paper"), default=None,
+                   help="override the route's road PSD convention")
+    p.add_argument("--nonlinear", action="store_true",
+                   help="enable bump stops and tyre lift-off whatever the vehicle file says")
+    p.add_argument("--out", metavar="DIR", help="write DIR/drive.json")
+    add_vehicle_argument(p)
+    add_json_argument(p)
+    sub.add_parser("routes", help="list the shipped routes")
+    args = parser.parse_args(argv)
+
+    if args.command == "routes":
+        from hil.road import load_route, shipped_routes
+
+        for name in shipped_routes():
+            r = load_route(name)
+            print(f"{name:20s} {len(r.segments):2d} segments  {r.length_m:7.0f} m  "
+                  f"{r.duration_s:6.1f} s  {r.description}")
+        return 0
+
+    from hil.report import drive_report, render_drive, write_json
+
+    cfg = vehicle_or_exit(args.vehicle)
+    route = route_or_exit(args.route).with_convention(args.convention)
+    report = drive_report(cfg, route, args.seed, nonlinear=args.nonlinear,
+                          show_progress=not args.json and sys.stderr.isatty())
+    if args.out:
+        path = write_json(report, args.out, "drive.json")
+        if not args.json:
+            print(f"report written to {path}")
+    emit(report, args.json, render_drive)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

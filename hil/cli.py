@@ -1,0 +1,96 @@
+"""Shared command-line plumbing: vehicle/route arguments, clear errors, JSON or rich output."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any, Callable, NoReturn
+
+from hil.config import ConfigError, VehicleConfig, load_vehicle
+from hil.road import GRADES, Route, load_route
+
+EXIT_CONFIG = 2
+
+
+def fail(message: str, code: int = EXIT_CONFIG) -> NoReturn:
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def add_vehicle_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--vehicle", metavar="FILE", default=None,
+                        help="vehicle TOML file (default: the paper's Table 3 car)")
+
+
+def add_json_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object on stdout instead of a table")
+
+
+def grade_arg(text: str) -> str:
+    g = text.strip().upper()
+    if len(g) != 1 or g not in GRADES:
+        raise argparse.ArgumentTypeError(f"grade must be one of {', '.join(GRADES)}, got {text!r}")
+    return g
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text!r}")
+    return value
+
+
+def speed_arg(text: str) -> float:
+    value = positive_float(text)
+    if value > 100.0:
+        raise argparse.ArgumentTypeError(f"speed must be at most 100 m/s, got {text!r}")
+    return value
+
+
+def seed_arg(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seed must be an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"seed must be non-negative, got {text!r}")
+    return value
+
+
+def vehicle_or_exit(path: str | None) -> VehicleConfig:
+    try:
+        return load_vehicle(path)
+    except ConfigError as exc:
+        fail(str(exc))
+
+
+def route_or_exit(spec: str) -> Route:
+    try:
+        return load_route(spec)
+    except ConfigError as exc:
+        fail(str(exc))
+
+
+def _clean(value: Any) -> Any:
+    """JSON has no NaN/inf: write them as null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    return value
+
+
+def emit(obj: dict, as_json: bool, render: Callable[[dict], None]) -> None:
+    if as_json:
+        json.dump(_clean(obj), sys.stdout, indent=2, sort_keys=False)
+        sys.stdout.write("\n")
+    else:
+        render(obj)

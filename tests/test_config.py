@@ -1,0 +1,118 @@
+"""Vehicle TOML: the contract keys, defaults, and one clear error line for every bad input."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hil.config import DEFAULT_VEHICLE_FILE, ConfigError, default_vehicle, load_vehicle
+
+ROOT = Path(__file__).resolve().parents[1]
+
+GOOD = """\
+[vehicle]
+sprung_mass_kg = 320.0
+unsprung_mass_kg = 40.0
+spring_stiffness_n_per_m = 20000.0
+damping_n_s_per_m = 1000.0
+tire_stiffness_n_per_m = 200000.0
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "car.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_default_is_table3():
+    v = default_vehicle().vehicle
+    assert (v.sprung_mass_kg, v.unsprung_mass_kg, v.spring_stiffness_n_per_m,
+            v.damping_n_s_per_m, v.tire_stiffness_n_per_m) == (320.0, 40.0, 20000.0, 1000.0, 200000.0)
+    assert load_vehicle(None) is default_vehicle()
+    assert load_vehicle(DEFAULT_VEHICLE_FILE).vehicle == v
+
+
+def test_minimal_file_takes_defaults_for_other_tables(tmp_path):
+    cfg = load_vehicle(write(tmp_path, GOOD.replace("320.0", "400.0")))
+    assert cfg.vehicle.sprung_mass_kg == 400.0
+    assert cfg.actuator == default_vehicle().actuator
+    assert cfg.sensors == default_vehicle().sensors
+
+
+def test_partial_override_of_other_tables(tmp_path):
+    cfg = load_vehicle(write(tmp_path, GOOD + "[actuator]\ncurrent_limit_a = 25.0\n"
+                                              "[sensors.body_accel]\nbits = 16\n"))
+    assert cfg.actuator.current_limit_a == 25.0
+    assert cfg.actuator.screw_lead_m == default_vehicle().actuator.screw_lead_m
+    assert cfg.sensors.body_accel.bits == 16
+    assert cfg.sensors.body_accel.noise_std == default_vehicle().sensors.body_accel.noise_std
+
+
+def test_shipped_suv_loads():
+    cfg = load_vehicle(ROOT / "hil" / "vehicles" / "suv.toml")
+    assert cfg.vehicle.sprung_mass_kg == 520.0
+    assert cfg.actuator.current_limit_a == 80.0
+
+
+BAD_CASES = [
+    # (description, file text, words the message must contain)
+    ("missing key", GOOD.replace("damping_n_s_per_m = 1000.0\n", ""), ["vehicle.damping_n_s_per_m", "missing"]),
+    ("unknown key", GOOD + "wheelbase_m = 2.7\n", ["vehicle.wheelbase_m", "unknown"]),
+    ("unknown table", GOOD + "[engine]\npower = 1\n", ["engine", "unknown"]),
+    ("zero", GOOD.replace("40.0", "0.0"), ["vehicle.unsprung_mass_kg", "positive"]),
+    ("negative", GOOD.replace("1000.0", "-5.0"), ["vehicle.damping_n_s_per_m", "positive"]),
+    ("nan", GOOD.replace("20000.0", "nan"), ["vehicle.spring_stiffness_n_per_m", "finite"]),
+    ("inf", GOOD.replace("200000.0", "inf"), ["vehicle.tire_stiffness_n_per_m", "finite"]),
+    ("string", GOOD.replace("320.0", '"heavy"'), ["vehicle.sprung_mass_kg", "number"]),
+    ("bool", GOOD.replace("320.0", "true"), ["vehicle.sprung_mass_kg", "number"]),
+    ("no vehicle table", "[actuator]\ncurrent_limit_a = 3.0\n", ["[vehicle]", "missing"]),
+    ("broken toml", GOOD + "[actuator\n", ["invalid TOML"]),
+    ("bad sub key", GOOD + "[actuator]\nlead = 1\n", ["actuator.lead", "unknown"]),
+    ("efficiency > 1", GOOD + "[actuator]\nscrew_efficiency = 1.5\n", ["actuator.screw_efficiency"]),
+    ("adc bits", GOOD + "[sensors.susp_defl]\nbits = 40\n", ["sensors.susp_defl.bits"]),
+    ("adc range", GOOD + "[sensors.susp_defl]\nrange_min = 1.0\nrange_max = 0.5\n", ["sensors.susp_defl.range_max"]),
+    ("unknown sensor", GOOD + "[sensors.lidar]\nbits = 12\n", ["sensors.lidar", "unknown"]),
+    ("bool flag type", GOOD + "[nonlinear]\nbump_stops = 1\n", ["nonlinear.bump_stops"]),
+]
+
+
+@pytest.mark.parametrize("desc,text,words", BAD_CASES, ids=[c[0] for c in BAD_CASES])
+def test_bad_vehicle_file_gives_one_clear_line(tmp_path, desc, text, words):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_vehicle(path)
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert str(path) in msg
+    for word in words:
+        assert word in msg
+
+
+def test_unreadable_and_non_utf8_files(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_vehicle(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_vehicle(tmp_path)  # a directory
+    binary = tmp_path / "bin.toml"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ConfigError, match="UTF-8"):
+        load_vehicle(binary)
+
+
+@pytest.mark.parametrize("argv", [
+    ["-m", "tools.analysis", "thresholds"],
+    ["-m", "tools.analysis", "passive", "--grade", "B", "--speed", "20"],
+    ["-m", "tools.analysis", "limits", "--grade", "B", "--speed", "20"],
+    ["-m", "hil", "drive", "--route", "city"],
+])
+def test_cli_bad_vehicle_exits_2_with_one_line(tmp_path, argv):
+    path = write(tmp_path, GOOD.replace("40.0", "-1.0"))
+    proc = subprocess.run([sys.executable, *argv, "--vehicle", str(path), "--json"],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "vehicle.unsprung_mass_kg" in lines[0] and str(path) in lines[0]
