@@ -114,18 +114,21 @@ class Normalised:
         return K, var
 
 
-def _dual_max(norm: Normalised, objective: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """min J_obj s.t. J_i <= 1 for the other two outputs, by maximising the Lagrange dual
-    g(lam) = min_K J_obj + sum lam_i (J_i - 1) over lam >= 0 (Danskin: grad = J_i - 1)."""
+def _dual_max(norm: Normalised, objective: int, bounds: tuple[float, float] = (1.0, 1.0)
+              ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """min J_obj s.t. RMS ratio_i <= bound_i for the other two outputs, by maximising the
+    Lagrange dual g(lam) = min_K J_obj + sum lam_i (J_i - c_i) over lam >= 0 (Danskin:
+    grad = J_i - c_i), c_i = bound_i^2."""
     others = [i for i in range(3) if i != objective]
+    c = np.asarray(bounds, dtype=float) ** 2
 
     def neg_dual(lam: np.ndarray) -> tuple[float, np.ndarray]:
         w = np.zeros(3)
         w[objective] = 1.0
         w[others] = lam
         _, var = norm.lqr(w)
-        g = var[objective] + float(lam @ (var[others] - 1.0))
-        return -g, -(var[others] - 1.0)
+        g = var[objective] + float(lam @ (var[others] - c))
+        return -g, -(var[others] - c)
 
     best = None
     for start in ([1.0, 1.0], [0.1, 3.0], [3.0, 0.1]):
@@ -175,16 +178,17 @@ def weights_from_log(z: np.ndarray) -> np.ndarray:
     return np.array([1.0, 10.0 ** z[0], 10.0 ** z[1]])
 
 
-def _eq43_min(norm: Normalised) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum of Eq. (43) under (44) over the Pareto frontier, which LQR weights trace.
-    The objective (a sum of square roots) is not convex, so: grid, then local refinement."""
+def _eq43_min(norm: Normalised, bound: float = 1.0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Minimum of Eq. (43) under (44) (each ratio <= bound) over the Pareto frontier, which
+    LQR weights trace. The objective (a sum of square roots) is not convex: grid, then local
+    refinement."""
 
     def f(z: np.ndarray, penalty: bool = True) -> float:
         _, var = norm.lqr(weights_from_log(z))
         ratios = np.sqrt(var)
         if penalty:
-            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - 1.0, 0.0)))
-        return eq43_fitness(ratios)
+            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - bound, 0.0)))
+        return eq43_fitness(ratios / bound) * bound
 
     grid = np.linspace(-3.0, 5.0, 21)
     scores = sorted((f(np.array([a, b])), a, b) for a in grid for b in grid)
@@ -228,3 +232,16 @@ def physical_limits(model: LinearModel) -> dict[str, LimitResult]:
     val, q, K, var = _eq43_min(norm)
     eq43 = result(val, q, K, var)
     return {"comfort": comfort, "safety": safety, "balanced": balanced, "eq43": eq43}
+
+
+def constrained_design(model: LinearModel, objective: str, bound: float = 1.0) -> LimitResult:
+    """A design point inside the frontier, with a margin: ``objective`` is 'comfort' (min BA),
+    'safety' (min DTD) or 'eq43' (min Eq. (43)), the constrained ratios bounded by ``bound``
+    instead of 1. The gain is in SI units."""
+    norm = Normalised.of(model)
+    if objective == "eq43":
+        val, q, K, var = _eq43_min(norm, bound)
+        return LimitResult(val, q, norm.physical_gain(K), np.sqrt(var))
+    index = {"comfort": 0, "safety": 2}[objective]
+    g, w, K, var = _dual_max(norm, index, (bound, bound))
+    return LimitResult(math.sqrt(g), w, norm.physical_gain(K), np.sqrt(var))

@@ -1,0 +1,76 @@
+"""Actuator output stage: force command -> current reference -> H-bridge voltage -> PWM duty.
+
+* Force to current: the screw delivers g K i - b v_rel with g = eta when the motor drives and
+  1/eta when it is back-driven; the friction b is compensated in the active modes (not when
+  harvesting, where it is free damping). The current reference is limited below the bridge's
+  hardware limit.
+* Current loop: deadbeat on the discrete winding model i' = a i + b_c (V - EMF), plus an
+  integral correction of the model error with anti-windup (conditional integration and clamp).
+* Voltage to duty: saturate to the DC voltage (bus, or storage when the regen switch is on);
+  duty in Q15, rounded half away from zero, saturated.
+* Regeneration: the terminal voltage is kept between ``min_ratio`` * EMF and the EMF (same
+  sign), where the current flows against the EMF and the power into the storage element.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from firmware.params import ActuatorParams, PlantParams
+
+Q15_ONE = 32768
+DUTY_MIN_Q15 = -32768
+DUTY_MAX_Q15 = 32767
+CURRENT_MARGIN = 0.95
+
+
+@dataclass
+class ActuatorState:
+    integ: float = 0.0
+    i_ref_prev: float = 0.0
+    voltage: float = 0.0
+
+
+def round_half_away(x: float) -> int:
+    return int(math.floor(x + 0.5)) if x >= 0.0 else -int(math.floor(-x + 0.5))
+
+
+def duty_to_q15(duty: float) -> int:
+    return min(DUTY_MAX_Q15, max(DUTY_MIN_Q15, round_half_away(duty * Q15_ONE)))
+
+
+def current_reference(plant: PlantParams, force: float, rel_vel: float, compensate: bool) -> float:
+    demand = force + (plant.friction * rel_vel if compensate else 0.0)
+    g = plant.efficiency if demand * rel_vel >= 0.0 else 1.0 / plant.efficiency
+    i_ref = demand / (g * plant.force_constant)
+    lim = CURRENT_MARGIN * plant.current_limit
+    return min(lim, max(-lim, i_ref))
+
+
+def step(params: ActuatorParams, plant: PlantParams, st: ActuatorState, i_ref: float,
+         i_meas: float, rel_vel: float, regen: bool, min_ratio: float) -> int:
+    """Voltage for this tick from the current reference; returns the duty in Q15."""
+    emf = plant.force_constant * rel_vel
+    v_dc = plant.storage_voltage if regen else plant.bus_voltage
+    # the integral learns the model error seen on the last tick's reference
+    v_ff = emf + (i_ref - params.current_a * i_meas) / params.current_b
+    v = v_ff + st.integ
+    lo, hi = -v_dc, v_dc
+    if regen:
+        a, b = sorted((min_ratio * emf, emf))
+        lo, hi = max(lo, a), min(hi, b)
+    saturated = v < lo or v > hi
+    v = min(hi, max(lo, v))
+    if not saturated:
+        st.integ += params.ki * (st.i_ref_prev - i_meas)
+        st.integ = min(params.integ_limit, max(-params.integ_limit, st.integ))
+    st.i_ref_prev = i_ref
+    st.voltage = v
+    return duty_to_q15(v / v_dc)
+
+
+def reset(st: ActuatorState) -> None:
+    st.integ = 0.0
+    st.i_ref_prev = 0.0
+    st.voltage = 0.0

@@ -1,0 +1,91 @@
+"""Adaptive Kalman filter with forgetting factor (paper §3.2.1, corrected by errata 6-9).
+
+State x = [zs_dot, zt_dot, zs, zt, zf]; the known actuator force u enters the prediction
+(errata 8); measurements z = H x + D u + v. Sage-Husa noise estimation with forgetting factor b,
+d_t = (1 - b) / (1 - b^(t+1)):
+
+    eps  = z - H x_pred - D u - r_hat                     (innovation, errata 6)
+    r_hat = (1 - d) r_hat + d (z - H x_pred - D u)          (Eq. 15, optional)
+    R_hat = (1 - d) R_hat + d (eps eps^T - H P_pred H^T)    (Eq. 16)
+
+R_hat can lose positive definiteness (errata 7): after every update it is symmetrised and its
+eigenvalues are floored at ``r_floor`` (the guard). The update uses the Joseph form. With
+adaptation off this is exactly a linear Kalman filter (tested against filterpy).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware.params import AkfParams
+
+
+@dataclass
+class AkfState:
+    x: np.ndarray
+    P: np.ndarray
+    R: np.ndarray
+    r: np.ndarray
+    b_pow: float              # b^(t+1)
+    innovation: np.ndarray
+    guard_hits: int = 0       # how often the R-hat guard acted
+
+
+def init(params: AkfParams) -> AkfState:
+    m = params.H.shape[0]
+    return AkfState(x=np.zeros(5), P=params.p0.copy(), R=params.r0.copy(), r=np.zeros(m),
+                    b_pow=params.forgetting, innovation=np.zeros(m))
+
+
+def guard_r(R: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Symmetrise R and floor it: in coordinates scaled by sqrt(floor) (so channels of very
+    different units compare), every eigenvalue is raised to at least 1. The result is
+    positive definite with R >= diag(floor). Non-finite R falls back to diag(floor)."""
+    if not np.all(np.isfinite(R)):
+        return np.diag(floor).astype(float), True
+    s = np.sqrt(floor)
+    Rn = 0.5 * (R + R.T) / np.outer(s, s)
+    w, V = np.linalg.eigh(Rn)
+    if w[0] >= 1.0:
+        return 0.5 * (R + R.T), False
+    w = np.maximum(w, 1.0)
+    return ((V * w) @ V.T) * np.outer(s, s), True
+
+
+def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
+    st.x = params.phi @ st.x + params.gamma * u
+    st.P = params.phi @ st.P @ params.phi.T + road_intensity * params.q_unit
+
+
+def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
+    H = params.H
+    resid = z - H @ st.x - params.D * u
+    eps = resid - st.r if params.bias_adaptive else resid
+    HP = H @ st.P
+    HPHt = HP @ H.T
+    if params.adaptive:
+        b = params.forgetting
+        d = (1.0 - b) / (1.0 - st.b_pow)   # b_pow = b^(t+1); d = 1 at t = 0
+        st.b_pow *= b
+        if params.bias_adaptive:
+            st.r = (1.0 - d) * st.r + d * resid
+        R = (1.0 - d) * st.R + d * (np.outer(eps, eps) - HPHt)
+        st.R, hit = guard_r(R, params.r_floor)
+        st.guard_hits += int(hit)
+    S = HPHt + st.R
+    K = np.linalg.solve(S, HP).T            # P H^T S^-1  (S symmetric)
+    st.x = st.x + K @ eps
+    I_KH = np.eye(5) - K @ H
+    P = I_KH @ st.P @ I_KH.T + K @ st.R @ K.T
+    st.P = 0.5 * (P + P.T)
+    st.innovation = eps
+
+
+def step(params: AkfParams, st: AkfState, z: np.ndarray, u_tick: float, u_now: float,
+         speed_mps: float) -> None:
+    """One tick: predict over the last tick with the force that acted during it (u_tick),
+    then update with this tick's measurement, whose feedthrough is the force acting now."""
+    predict(params, st, u_tick, params.road_intensity_per_mps * max(speed_mps, 0.0))
+    update(params, st, z, u_now)

@@ -1,0 +1,195 @@
+"""The ECU: one deterministic fixed-step function, ``step(state, inputs) -> (state, outputs)``.
+
+Order of one tick (fixed; each stage uses what the previous ones produced):
+  1. ADC sampling: counts -> SI, plausibility -> fault bits          (adc)
+  2. road and state estimation with the force that acted as input    (akf, uses 1)
+  3. road-grade estimate and road-holding check                      (grade, uses 2)
+  4. mode state machine: recommendation, driver decision, overrides  (modes, uses 1, 3)
+  5. controller of the active mode, crossfaded on a mode change      (control, uses 1-4)
+  6. actuator stage: force -> current -> voltage -> PWM duty / regen (actuator, uses 5)
+  7. status values
+Time enters only as the tick count in the inputs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from firmware import actuator, adc, akf, grade, modes
+from firmware.control import bppid, pid, regen
+from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_NONE, CTRL_PID, CTRL_REGEN,
+                             CTRL_SKYHOOK, GRADE_UNKNOWN, MODE_COMFORT, MODE_COMPREHENSIVE,
+                             MODE_ENERGY, MODE_PASSIVE, MODE_SAFETY, EcuParams)
+
+# fault word: low byte = ADC channels (firmware.adc.FAULT_BIT); higher bits:
+FAULT_NONFINITE_ESTIMATE = 1 << 8   # the estimator diverged (reset, fail-safe this tick)
+FAULT_INVALID_REQUEST = 1 << 9      # driver request with an invalid mode (informational)
+# channels whose loss makes active control unsafe
+SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
+                   | adc.FAULT_BIT["susp_defl"] | adc.FAULT_BIT["motor_current"]
+                   | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE)
+
+
+@dataclass(frozen=True)
+class Inputs:
+    tick: int
+    body_accel: int          # ADC counts
+    wheel_accel: int
+    susp_defl: int
+    motor_current: int
+    speed: int
+    req_kind: int = 0        # latest driver request (REQ_*)
+    req_mode: int = 0
+    req_counter: int = 0
+
+
+@dataclass(frozen=True)
+class Outputs:
+    duty_q15: int            # signed PWM duty
+    regen: bool              # regen switch: bridge DC side to the storage element
+    enable: bool             # bridge enable
+    recommended_mode: int
+    active_mode: int
+    grade: int               # 0..3 = A..D, 255 unknown
+    faults: int
+    reason: int              # why the active mode differs from the driver's (modes.REASON_*)
+    events: int              # driver-request events of this tick (modes.EVT_*)
+    override: bool
+    # status values, quantised as they are sent (integers)
+    force_cmd_n: int
+    road_est_um: int         # road height estimate, micrometres
+    dtd_est_um: int          # tyre deflection estimate, micrometres
+    gq_est_log_c: int        # log4(G_q / G_q,A) * 100 (A = 0, B = 100, ...), -32768 if unknown
+    ba_rms_mmps2: int        # body acceleration RMS over the grade window, mm/s^2
+    dtd_rms_um: int          # tyre deflection RMS (road-holding check), micrometres
+
+
+@dataclass
+class EcuState:
+    params: EcuParams
+    adc: adc.AdcState
+    akf: akf.AkfState
+    grade: grade.GradeState
+    modes: modes.ModeState
+    actuator: actuator.ActuatorState
+    bppid: bppid.BpPidState
+    pid: pid.PidState
+    ctrl: int = CTRL_NONE            # controller now driving
+    ctrl_from: int = CTRL_NONE       # controller being faded out
+    ramp: int = 0                    # ticks into the crossfade
+    mode_prev: int = MODE_PASSIVE
+    force_prev: float = 0.0          # force command of the last tick
+    force_meas_prev: float = 0.0     # force from the measured current, last tick
+    dtd2_ema: float = 0.0
+    tick: int = -1
+    extra: dict = field(default_factory=dict)
+
+
+def init(params: EcuParams) -> EcuState:
+    st = EcuState(params=params, adc=adc.AdcState(), akf=akf.init(params.akf),
+                  grade=grade.GradeState(), modes=modes.init(params.modes),
+                  actuator=actuator.ActuatorState(), bppid=bppid.init(params.control),
+                  pid=pid.PidState())
+    st.mode_prev = st.modes.active_mode
+    st.ctrl = params.modes.controllers[st.mode_prev]
+    return st
+
+
+def _force_of(st: EcuState, ctrl: int, x: np.ndarray, ba: float) -> float:
+    p = st.params.control
+    dt = st.params.dt_s
+    if ctrl == CTRL_LQR:
+        return -float(p.k_safety @ x)
+    if ctrl == CTRL_GALQR:
+        return -float(p.k_comprehensive @ x)
+    if ctrl == CTRL_SKYHOOK:
+        return -p.skyhook_c * x[0] - p.skyhook_passive_c * (x[0] - x[1])
+    if ctrl == CTRL_PID:
+        return pid.step(st.pid, -ba, p.pid_kp, p.pid_ki, p.pid_kd, p.pid_leak, dt, p.force_limit)
+    if ctrl == CTRL_BPPID:
+        return bppid.step(p, st.bppid, ba, dt)
+    if ctrl == CTRL_REGEN:
+        return regen.force(p, x[0], x[0] - x[1])
+    return 0.0
+
+
+def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
+    P = st.params
+    plant = P.plant
+    st.tick = inp.tick
+    # 1. ADC
+    raw = {"body_accel": inp.body_accel, "wheel_accel": inp.wheel_accel,
+           "susp_defl": inp.susp_defl, "motor_current": inp.motor_current, "speed": inp.speed}
+    v, faults = adc.sample(P.adc, st.adc, raw)
+    ba, wa, defl, i_meas, speed = (v["body_accel"], v["wheel_accel"], v["susp_defl"],
+                                   v["motor_current"], v["speed"])
+    # 2. AKF; the force acting now, from the measured current (direction picks the efficiency)
+    x_prev = st.akf.x
+    rel_prev = x_prev[0] - x_prev[1]
+    g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
+    force_meas = g * plant.force_constant * i_meas
+    m = P.akf.H.shape[0]
+    z = np.array((ba, defl, wa)[:m]) if m == 3 else np.array((ba, defl))
+    akf.step(P.akf, st.akf, z, 0.5 * (st.force_meas_prev + force_meas), force_meas, speed)
+    st.force_meas_prev = force_meas
+    x = st.akf.x
+    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(st.akf.P)):
+        faults |= FAULT_NONFINITE_ESTIMATE
+        st.akf = akf.init(P.akf)
+        x = st.akf.x
+    # 3. grade and road-holding
+    dtd_est = float(x[3] - x[4])
+    g_est = grade.step(P.grade, st.grade, float(x[1]), dtd_est, ba, speed, P.dt_s)
+    alpha = 1.0 / P.modes.safety_window_ticks
+    st.dtd2_ema += alpha * (dtd_est * dtd_est - st.dtd2_ema)
+    dtd_rms = math.sqrt(st.dtd2_ema)
+    # 4. modes
+    safety_fault = bool(faults & SAFETY_RELEVANT)
+    mode = modes.step(P.modes, st.modes, g_est, inp.req_kind, inp.req_mode, inp.req_counter,
+                      dtd_rms, safety_fault)
+    if st.modes.events & modes.EVT_INVALID_REQUEST:
+        faults |= FAULT_INVALID_REQUEST
+    # 5. control, with a crossfade when the controller changes (bumpless transfer)
+    want = P.modes.controllers[mode]
+    if want != st.ctrl:
+        st.ctrl_from, st.ctrl, st.ramp = st.ctrl, want, 0
+        if want in (CTRL_PID, CTRL_BPPID):
+            pid.reset_to(st.pid if want == CTRL_PID else st.bppid.pid, 0.0)
+    force = _force_of(st, st.ctrl, x, ba)
+    if st.ramp < P.modes.ramp_ticks:
+        st.ramp += 1
+        beta = st.ramp / P.modes.ramp_ticks
+        force = beta * force + (1.0 - beta) * _force_of(st, st.ctrl_from, x, ba)
+    lim = P.control.force_limit
+    force = min(lim, max(-lim, force))
+    # 6. actuator
+    regen_on = mode == MODE_ENERGY
+    active = (mode != MODE_PASSIVE or st.ramp < P.modes.ramp_ticks) and not safety_fault
+    rel = float(x[0] - x[1])
+    if active:
+        i_ref = actuator.current_reference(plant, force, rel, compensate=not regen_on)
+        duty = actuator.step(P.actuator, plant, st.actuator, i_ref, i_meas, rel, regen_on,
+                             P.control.regen_min_voltage_ratio)
+    else:
+        actuator.reset(st.actuator)
+        duty, force = 0, 0.0
+    st.force_prev = force
+    st.mode_prev = mode
+    # 7. status
+    gq_log = st.grade.log_gq
+    out = Outputs(
+        duty_q15=duty, regen=regen_on and active, enable=active,
+        recommended_mode=st.modes.recommended, active_mode=mode,
+        grade=g_est if g_est != GRADE_UNKNOWN else GRADE_UNKNOWN, faults=faults,
+        reason=st.modes.reason, events=st.modes.events, override=st.modes.override,
+        force_cmd_n=actuator.round_half_away(force),
+        road_est_um=actuator.round_half_away(float(x[4]) * 1e6),
+        dtd_est_um=actuator.round_half_away(dtd_est * 1e6),
+        gq_est_log_c=actuator.round_half_away(gq_log * 100) if math.isfinite(gq_log) else -32768,
+        ba_rms_mmps2=actuator.round_half_away(st.grade.ba_rms * 1e3),
+        dtd_rms_um=actuator.round_half_away(dtd_rms * 1e6),
+    )
+    return st, out

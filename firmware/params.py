@@ -1,0 +1,165 @@
+"""Calibration of the ECU: every constant the firmware needs, as plain numbers and arrays.
+
+Built offline (``hil.ecu_params``) from the vehicle file, the design tools and the gains file;
+the firmware never reads files itself. The same values are exported as C tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Modes (values are the ones on the bus)
+MODE_PASSIVE = 0
+MODE_ENERGY = 1          # energy feedback (regeneration), paper's "feedthrough mode" (errata 10)
+MODE_COMFORT = 2
+MODE_SAFETY = 3
+MODE_COMPREHENSIVE = 4
+MODE_NAMES = ("passive", "energy", "comfort", "safety", "comprehensive")
+
+# Controllers
+CTRL_NONE = 0
+CTRL_PID = 1
+CTRL_BPPID = 2
+CTRL_LQR = 3
+CTRL_GALQR = 4
+CTRL_SKYHOOK = 5
+CTRL_REGEN = 6
+CTRL_NAMES = ("none", "pid", "bppid", "lqr", "galqr", "skyhook", "regen")
+
+# Grades A..D as 0..3 (D stands for D and rougher, as in the paper)
+GRADE_NAMES = "ABCD"
+GRADE_UNKNOWN = 255
+
+# Driver request kinds
+REQ_NONE = 0
+REQ_ACCEPT = 1     # accept the recommendation whose mode is in the request
+REQ_REFUSE = 2     # refuse the current recommendation
+REQ_CHOOSE = 3     # choose a mode explicitly
+
+
+@dataclass(frozen=True)
+class AdcChannel:
+    range_min: float
+    lsb: float
+    full_scale: int          # highest count (2^bits - 1)
+
+
+@dataclass(frozen=True)
+class AdcParams:
+    body_accel: AdcChannel
+    wheel_accel: AdcChannel
+    susp_defl: AdcChannel
+    motor_current: AdcChannel
+    speed: AdcChannel
+    rail_ticks: int          # consecutive samples at a rail that make a channel faulty
+    recover_ticks: int       # consecutive good samples that clear the fault (hysteresis)
+
+
+@dataclass(frozen=True)
+class PlantParams:
+    """What the ECU knows of the corner (for the model-based parts)."""
+
+    ms: float
+    mt: float
+    ks: float
+    cs: float
+    kt: float
+    friction: float          # screw viscous friction (N s/m)
+    force_constant: float    # N/A, also V/(m/s)
+    efficiency: float
+    resistance: float
+    inductance: float
+    current_limit: float
+    bus_voltage: float
+    storage_voltage: float
+
+
+@dataclass(frozen=True)
+class AkfParams:
+    phi: np.ndarray          # (5,5) state transition at the ECU tick
+    gamma: np.ndarray        # (5,)  known force input (ZOH)
+    q_unit: np.ndarray       # (5,5) discrete process noise per unit road intensity (m^2/s^3)
+    road_intensity_per_mps: float  # (2 pi n0)^2 kappa G_q,nominal: times speed = road intensity
+    H: np.ndarray            # (m,5) measurement matrix
+    D: np.ndarray            # (m,)  force feedthrough
+    r0: np.ndarray           # (m,m) a-priori measurement noise
+    r_floor: np.ndarray      # (m,)  floor of R-hat eigenvalues (guard)
+    forgetting: float        # b of Eq. (15)/(16)
+    adaptive: bool
+    bias_adaptive: bool      # estimate r-hat (Eq. 15)
+    p0: np.ndarray           # (5,5) initial covariance
+
+
+@dataclass(frozen=True)
+class GradeParams:
+    classifier: int          # 0 = road-estimate classifier (default), 1 = paper's threshold rule
+    hp_a: float              # 1st-order high-pass on the road velocity estimate
+    lp_a: float              # 1st-order low-pass
+    block_ticks: int         # variance blocks
+    n_blocks: int            # blocks in the window
+    speed_grid: np.ndarray   # m/s
+    var_per_gq: np.ndarray   # band variance per unit G_q at each grid speed (m^2/s^2 / m^3)
+    gq_centres: np.ndarray   # geometric-mean G_q of A..D
+    hysteresis: float        # in grade units (log4 of G_q)
+    dwell_ticks: int         # a new grade must persist this long
+    min_speed: float         # below this the estimate freezes
+    dtd1: float              # paper thresholds, Eq. (24)-(26)
+    ba1: float
+    ba2: float
+
+
+@dataclass(frozen=True)
+class ModeParams:
+    ramp_ticks: int              # bumpless transfer duration
+    safety_dtd_rms_limit: float  # road-holding limit on the tyre deflection RMS (m)
+    safety_exit_ratio: float     # leave the override below limit * ratio
+    safety_window_ticks: int     # RMS window of the road-holding check
+    safety_hold_ticks: int       # minimum time in the override
+    initial_mode: int
+    controllers: tuple[int, ...]  # controller of each mode (index = mode)
+
+
+@dataclass(frozen=True)
+class ControlParams:
+    k_safety: np.ndarray         # (5,) u = -K x_hat
+    k_comprehensive: np.ndarray  # (5,) GA-LQR
+    skyhook_c: float             # N s/m on body velocity
+    skyhook_passive_c: float     # N s/m on relative velocity (added damping)
+    pid_kp: float                # N per m/s^2 of BA error
+    pid_ki: float                # N per m/s of integrated BA error
+    pid_kd: float                # N per m/s^3
+    pid_leak: float              # per-tick leak of the incremental PID output
+    bp_w_hidden: np.ndarray      # (5,4) initial hidden weights (bias column last input x4 = 1)
+    bp_b_hidden: np.ndarray      # (5,)
+    bp_w_out: np.ndarray         # (3,5)
+    bp_b_out: np.ndarray         # (3,)
+    bp_eta: float                # learning rate
+    bp_alpha: float              # momentum
+    bp_scale: np.ndarray         # (3,) K_p, K_i, K_d = scale * g(net)
+    bp_input_scale: float        # BA normalisation for the network inputs
+    regen_c: float               # harvesting damping on relative velocity (N s/m)
+    regen_skyhook_c: float       # skyhook part of the regen law (N s/m)
+    regen_min_voltage_ratio: float  # keep |V| >= ratio*|EMF| so power flows into storage
+    force_limit: float           # |F| command limit (N)
+
+
+@dataclass(frozen=True)
+class ActuatorParams:
+    current_a: float             # discrete current pole exp(-R dt / L)
+    current_b: float             # (1 - a) / R
+    ki: float                    # integral gain of the current loop (V per A per tick)
+    integ_limit: float           # anti-windup clamp of the integral (V)
+
+
+@dataclass(frozen=True)
+class EcuParams:
+    dt_s: float
+    adc: AdcParams
+    plant: PlantParams
+    akf: AkfParams
+    grade: GradeParams
+    modes: ModeParams
+    control: ControlParams
+    actuator: ActuatorParams
