@@ -171,8 +171,10 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     rel = float(x[0] - x[1])
     if active:
         i_ref = actuator.current_reference(plant, force, rel, compensate=not regen_on)
+        # relative acceleration over the tick: measured now, plus the change of force
+        rel_acc = (ba - wa) + (force - force_meas) * (1.0 / plant.ms + 1.0 / plant.mt)
         duty = actuator.step(P.actuator, plant, st.actuator, i_ref, i_meas, rel, regen_on,
-                             P.control.regen_min_voltage_ratio)
+                             P.control.regen_min_voltage_ratio, rel_acc, P.dt_s)
     else:
         actuator.reset(st.actuator)
         duty, force = 0, 0.0

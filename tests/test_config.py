@@ -53,7 +53,7 @@ def test_partial_override_of_other_tables(tmp_path):
 def test_shipped_suv_loads():
     cfg = load_vehicle(ROOT / "hil" / "vehicles" / "suv.toml")
     assert cfg.vehicle.sprung_mass_kg == 520.0
-    assert cfg.actuator.current_limit_a == 80.0
+    assert cfg.actuator.current_limit_a == 120.0
 
 
 BAD_CASES = [

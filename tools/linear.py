@@ -178,17 +178,19 @@ def weights_from_log(z: np.ndarray) -> np.ndarray:
     return np.array([1.0, 10.0 ** z[0], 10.0 ** z[1]])
 
 
-def _eq43_min(norm: Normalised, bound: float = 1.0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+def _eq43_min(norm: Normalised, bound=1.0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     """Minimum of Eq. (43) under (44) (each ratio <= bound) over the Pareto frontier, which
     LQR weights trace. The objective (a sum of square roots) is not convex: grid, then local
     refinement."""
+
+    bound = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
 
     def f(z: np.ndarray, penalty: bool = True) -> float:
         _, var = norm.lqr(weights_from_log(z))
         ratios = np.sqrt(var)
         if penalty:
             return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - bound, 0.0)))
-        return eq43_fitness(ratios / bound) * bound
+        return math.inf if np.any(ratios > bound) else float(np.sum(ratios))
 
     grid = np.linspace(-3.0, 5.0, 21)
     scores = sorted((f(np.array([a, b])), a, b) for a in grid for b in grid)
@@ -234,14 +236,74 @@ def physical_limits(model: LinearModel) -> dict[str, LimitResult]:
     return {"comfort": comfort, "safety": safety, "balanced": balanced, "eq43": eq43}
 
 
-def constrained_design(model: LinearModel, objective: str, bound: float = 1.0) -> LimitResult:
+def constrained_design(model: LinearModel, objective: str, bound=1.0) -> LimitResult:
     """A design point inside the frontier, with a margin: ``objective`` is 'comfort' (min BA),
     'safety' (min DTD) or 'eq43' (min Eq. (43)), the constrained ratios bounded by ``bound``
-    instead of 1. The gain is in SI units."""
+    (a number, or one per output [BA, SWS, DTD]) instead of 1. The gain is in SI units."""
     norm = Normalised.of(model)
     if objective == "eq43":
         val, q, K, var = _eq43_min(norm, bound)
         return LimitResult(val, q, norm.physical_gain(K), np.sqrt(var))
     index = {"comfort": 0, "safety": 2}[objective]
-    g, w, K, var = _dual_max(norm, index, (bound, bound))
+    b = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
+    g, w, K, var = _dual_max(norm, index, tuple(b[i] for i in range(3) if i != index))
     return LimitResult(math.sqrt(g), w, norm.physical_gain(K), np.sqrt(var))
+
+
+# -- designs for the ECU: blind to the unobservable common mode -----------------------------
+
+REL_T = np.array([[1.0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0], [0, 0, 1.0, -1.0, 0], [0, 0, 0, 1.0, -1.0]])
+_REL_S = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 1.0], [0, 0, 0, 1.0], [0, 0, 0, 0]])
+
+
+def relative_model(model: LinearModel) -> LinearModel:
+    """The model in relative coordinates r = [zs_dot, zt_dot, SWS, DTD] with the road as a
+    random walk (its slow pole dropped): the road velocity is the white-noise input. The
+    absolute heights, whose common mode the ECU cannot observe (errata 9), do not appear, so a
+    gain designed here and lifted by ``REL_T`` has no component along the common mode."""
+    A = model.A.copy()
+    A[4, 4] = 0.0
+    return LinearModel(REL_T @ A @ _REL_S, REL_T @ model.B, REL_T @ model.G, model.C @ _REL_S,
+                       model.D.copy())
+
+
+def ecu_design(model: LinearModel, objective: str, bound=1.0) -> LimitResult:
+    """Like ``constrained_design``, for the ECU: the LQR is designed on the relative model,
+    its gain lifted to the full state (K @ REL_T, blind to the common mode), and the ratios
+    are computed exactly on the full model. ``objective``: 'safety' (min DTD, BA and SWS
+    bounded) or 'eq43' (min Eq. (43), every ratio bounded)."""
+    rel = Normalised.of(relative_model(model))
+    passive_var, _ = output_covariance(model)
+    b = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
+
+    def lifted(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        K4, _ = rel.lqr(weights)
+        K5 = rel.physical_gain(K4) @ REL_T
+        var, _ = output_covariance(model, K5)
+        return K5, np.sqrt(var / passive_var)
+
+    if objective == "safety":
+        g, w, _, _ = _dual_max(rel, 2, (b[0], b[1]))
+        K5, ratios = lifted(w)
+        return LimitResult(float(ratios[2]), w, K5, ratios)
+    if objective != "eq43":
+        raise ValueError(f"unknown design objective {objective!r}")
+
+    def f(z: np.ndarray, penalty: bool = True) -> float:
+        _, ratios = lifted(weights_from_log(z))
+        if penalty:
+            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - b, 0.0)))
+        return math.inf if np.any(ratios > b) else float(np.sum(ratios))
+
+    grid = np.linspace(-3.0, 5.0, 17)
+    scores = sorted((f(np.array([x, y])), x, y) for x in grid for y in grid)
+    best_z, best_val = None, math.inf
+    for _, x, y in scores[:3]:
+        res = minimize(f, np.array([x, y]), method="Nelder-Mead",
+                       options={"xatol": 1e-6, "fatol": 1e-10, "maxiter": 1000})
+        val = f(res.x, penalty=False)
+        if val < best_val:
+            best_z, best_val = res.x, val
+    q = weights_from_log(best_z)
+    K5, ratios = lifted(q)
+    return LimitResult(best_val, q, K5, ratios)
