@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 run: $(STAMP)
-	$(PY) -m hil drive --route full_road_section --seed 1 --out out/run
+	$(PY) -m hil sim --route full_road_section --mode auto --seed 1 --out out/run
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -133,7 +133,16 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     force_meas = g * plant.force_constant * i_meas
     m = P.akf.H.shape[0]
     z = np.array((ba, defl, wa)[:m]) if m == 3 else np.array((ba, defl))
-    akf.step(P.akf, st.akf, z, 0.5 * (st.force_meas_prev + force_meas), force_meas, speed)
+    # road intensity for the process noise: the grade estimate's G_q once there is one
+    # (Sage-Husa adaptation of R needs Q about right), else the calibrated nominal
+    gq = st.grade.gq
+    if P.akf_q_follows_grade and math.isfinite(gq):
+        lo, hi = P.grade.gq_centres[0] * 0.5, P.grade.gq_centres[-1] * 2.0
+        road_per_mps = P.akf.road_intensity_per_mps * min(hi, max(lo, gq)) / P.akf_q_gq_nominal
+    else:
+        road_per_mps = P.akf.road_intensity_per_mps
+    akf.predict(P.akf, st.akf, 0.5 * (st.force_meas_prev + force_meas), road_per_mps * speed)
+    akf.update(P.akf, st.akf, z, force_meas)
     st.force_meas_prev = force_meas
     x = st.akf.x
     if not np.all(np.isfinite(x)) or not np.all(np.isfinite(st.akf.P)):

@@ -163,3 +163,5 @@ class EcuParams:
     modes: ModeParams
     control: ControlParams
     actuator: ActuatorParams
+    akf_q_follows_grade: bool    # AKF road intensity from the grade estimate
+    akf_q_gq_nominal: float      # the G_q behind akf.road_intensity_per_mps

@@ -1,5 +1,6 @@
 """``python -m hil``: the bench's command line.
 
+    python -m hil sim --route full_road_section --mode auto --seed 1 [--controller C] [--json]
     python -m hil drive --route full_road_section --seed 1 [--out DIR] [--json]
     python -m hil routes
 """
@@ -30,7 +31,26 @@ def main(argv: list[str] | None = None) -> int:
     add_vehicle_argument(p)
     add_json_argument(p)
     sub.add_parser("routes", help="list the shipped routes")
+    p = sub.add_parser("sim", help="software-in-the-loop: the whole ECU against the plant, "
+                                   "with a passive twin on the same road")
+    p.add_argument("--route", default="full_road_section",
+                   help="route TOML file or shipped route name (default: full_road_section)")
+    p.add_argument("--mode", default="auto",
+                   choices=("auto", "passive", "comfort", "safety", "comprehensive", "regen"),
+                   help="auto: the emulated driver accepts recommendations after a reaction "
+                        "delay; otherwise the driver chooses this mode and refuses the rest")
+    p.add_argument("--controller", choices=("pid", "bppid", "lqr", "galqr", "skyhook", "regen"),
+                   help="override the controller of the mode (of comfort mode for auto)")
+    p.add_argument("--seed", type=seed_arg, default=1)
+    p.add_argument("--gains", metavar="FILE", help="GA-LQR gains file (default: the shipped "
+                   "one for this vehicle, or tuned on the fly)")
+    p.add_argument("--out", metavar="DIR", help="write DIR/report.json")
+    add_vehicle_argument(p)
+    add_json_argument(p)
     args = parser.parse_args(argv)
+
+    if args.command == "sim":
+        return _sim(args)
 
     if args.command == "routes":
         from hil.road import load_route, shipped_routes
@@ -52,6 +72,42 @@ def main(argv: list[str] | None = None) -> int:
         if not args.json:
             print(f"report written to {path}")
     emit(report, args.json, render_drive)
+    return 0
+
+
+def _sim(args) -> int:
+    from pathlib import Path
+
+    from hil import sil
+    from hil.config import ConfigError
+    from hil.report import render_sil, write_json
+
+    cfg = vehicle_or_exit(args.vehicle)
+    route = route_or_exit(args.route)
+    bar, progress = None, None
+    if not args.json and sys.stderr.isatty():
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        bar.start()
+        task = bar.add_task(f"SIL {route.name} ({args.mode})", total=1)
+        progress = lambda k, n: bar.update(task, completed=k, total=n)  # noqa: E731
+    try:
+        report, _ = sil.run(cfg, route, args.mode, args.seed, controller=args.controller,
+                            gains_file=Path(args.gains) if args.gains else None,
+                            progress=progress)
+    except ConfigError as exc:
+        from hil.cli import fail
+
+        fail(str(exc))
+    finally:
+        if bar is not None:
+            bar.stop()
+    if args.out:
+        path = write_json(report, args.out, "report.json")
+        if not args.json:
+            print(f"report written to {path}")
+    emit(report, args.json, render_sil)
     return 0
 
 

@@ -84,3 +84,29 @@ def render_drive(report: dict) -> None:
                       f"{e['dtd_rms_m'] * 1e3:.2f}", f"{p['ba_wk_rms_mps2']:.3f}",
                       str(p["bump_stop_contacts"]), str(p["tire_lift_off_events"]))
     Console().print(table)
+
+
+def render_sil(report: dict) -> None:
+    from rich import box
+    from rich.console import Console
+    from rich.table import Table
+
+    ctrl = f", controller {report['controller']}" if report.get("controller") else ""
+    table = Table(box=box.SIMPLE_HEAD,
+                  title=f"SIL, route '{report['route']}', mode {report['mode']}{ctrl}, "
+                        f"seed {report['seed']}",
+                  caption=f"ratios to the passive twin (RMS after {report.get('settle_s', 3):g} s "
+                          f"per segment); grade accuracy {report['grade_accuracy']:.3f}; "
+                          f"{report['mode_switches']} mode switches for "
+                          f"{report['grade_changes']} grade changes; trace "
+                          f"{report['trace_sha256'][:16]}")
+    for col in ("seg", "BA", "SWS", "DTD", "F rms N", "grade ok", "harv W", "cons W", "road mm"):
+        table.add_column(col, justify="right", no_wrap=True, min_width=5)
+    for s in report["segments"]:
+        r = s["ratio"]
+        t = s["duration_s"]
+        table.add_row(f"{s['grade']}@{s['speed_mps']:g}", f"{r['ba']:.3f}", f"{r['sws']:.3f}",
+                      f"{r['dtd']:.3f}", f"{s['active']['force_rms_n']:.0f}",
+                      f"{s['grade_accuracy']:.2f}", f"{s['harvested_w']:.2f}",
+                      f"{s['consumed_j'] / t:.1f}", f"{s['road_estimate_rmse_m'] * 1e3:.1f}")
+    Console().print(table)

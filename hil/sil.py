@@ -115,7 +115,7 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     twin.reset(zf[0])
     state = ecu.init(p)
     sha = hashlib.sha256()
-    names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "road_est")
+    names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "road_est", "dtd_est")
     rec = {k: np.empty(n) for k in names}
     grade_est = np.empty(n, dtype=np.int16)
     mode_act = np.empty(n, dtype=np.int8)
@@ -151,6 +151,7 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         rec["p_dtd"][k] = twin.x[3] - twin.zf
         rec["p_vrel"][k] = twin.x[0] - twin.x[1]
         rec["road_est"][k] = out.road_est_um * 1e-6
+        rec["dtd_est"][k] = out.dtd_est_um * 1e-6
         grade_est[k] = out.grade
         mode_act[k] = out.active_mode
         stored[k] = active.ledger.stored_j
@@ -210,7 +211,7 @@ def _report(cfg, route, mode, controller, seed, p, trace, plant, digest, state) 
         "vehicle": cfg.source, "duration_s": len(trace.segment) * dt,
         "segments": segments,
         "grade_accuracy": acc_hits / acc_n if acc_n else float("nan"),
-        "mode_switches": switches, "grade_changes": grade_changes,
+        "mode_switches": switches, "grade_changes": grade_changes, "settle_s": SETTLE_S,
         "trace_sha256": digest,
         "energy": plant.ledger.as_dict(),
         "akf_r_guard_hits": state.akf.guard_hits,

@@ -267,43 +267,32 @@ def relative_model(model: LinearModel) -> LinearModel:
                        model.D.copy())
 
 
+class RelativeFamily:
+    """LQR gains designed on the relative model and lifted to the full state, evaluated
+    exactly (Lyapunov) on the full model: the family the ECU's LQR controllers come from."""
+
+    def __init__(self, model: LinearModel):
+        self.model = model
+        self.rel = Normalised.of(relative_model(model))
+        self.passive_var, _ = output_covariance(model)
+
+    def evaluate(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K in SI units for the full state, RMS ratios to passive of [BA, SWS, DTD])."""
+        K4, _ = self.rel.lqr(np.asarray(weights, dtype=float))
+        K5 = self.rel.physical_gain(K4) @ REL_T
+        var, _ = output_covariance(self.model, K5)
+        return K5, np.sqrt(var / self.passive_var)
+
+
 def ecu_design(model: LinearModel, objective: str, bound=1.0) -> LimitResult:
-    """Like ``constrained_design``, for the ECU: the LQR is designed on the relative model,
-    its gain lifted to the full state (K @ REL_T, blind to the common mode), and the ratios
-    are computed exactly on the full model. ``objective``: 'safety' (min DTD, BA and SWS
-    bounded) or 'eq43' (min Eq. (43), every ratio bounded)."""
-    rel = Normalised.of(relative_model(model))
-    passive_var, _ = output_covariance(model)
-    b = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
-
-    def lifted(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        K4, _ = rel.lqr(weights)
-        K5 = rel.physical_gain(K4) @ REL_T
-        var, _ = output_covariance(model, K5)
-        return K5, np.sqrt(var / passive_var)
-
-    if objective == "safety":
-        g, w, _, _ = _dual_max(rel, 2, (b[0], b[1]))
-        K5, ratios = lifted(w)
-        return LimitResult(float(ratios[2]), w, K5, ratios)
-    if objective != "eq43":
+    """Safety-mode LQR for the ECU: min DTD with BA and SWS bounded (``bound``, a number or
+    one per output), designed on the relative model (blind to the common mode) by the
+    Lagrange dual, ratios computed exactly on the full model. (The comprehensive mode's
+    GA-LQR comes from ``tools.tune_ga_lqr`` over the same family.)"""
+    if objective != "safety":
         raise ValueError(f"unknown design objective {objective!r}")
-
-    def f(z: np.ndarray, penalty: bool = True) -> float:
-        _, ratios = lifted(weights_from_log(z))
-        if penalty:
-            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - b, 0.0)))
-        return math.inf if np.any(ratios > b) else float(np.sum(ratios))
-
-    grid = np.linspace(-3.0, 5.0, 17)
-    scores = sorted((f(np.array([x, y])), x, y) for x in grid for y in grid)
-    best_z, best_val = None, math.inf
-    for _, x, y in scores[:3]:
-        res = minimize(f, np.array([x, y]), method="Nelder-Mead",
-                       options={"xatol": 1e-6, "fatol": 1e-10, "maxiter": 1000})
-        val = f(res.x, penalty=False)
-        if val < best_val:
-            best_z, best_val = res.x, val
-    q = weights_from_log(best_z)
-    K5, ratios = lifted(q)
-    return LimitResult(best_val, q, K5, ratios)
+    fam = RelativeFamily(model)
+    b = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
+    _, w, _, _ = _dual_max(fam.rel, 2, (b[0], b[1]))
+    K5, ratios = fam.evaluate(w)
+    return LimitResult(float(ratios[2]), w, K5, ratios)
