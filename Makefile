@@ -19,7 +19,7 @@ run: $(STAMP)
 	$(PY) -m hil sim --route full_road_section --mode auto --seed 1 --out out/run
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

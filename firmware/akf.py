@@ -39,19 +39,40 @@ def init(params: AkfParams) -> AkfState:
                     b_pow=params.forgetting, innovation=np.zeros(m))
 
 
+R_CEILING = 1e8   # largest R-hat eigenvalue, in units of the floor
+
+
 def guard_r(R: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Symmetrise R and floor it: in coordinates scaled by sqrt(floor) (so channels of very
-    different units compare), every eigenvalue is raised to at least 1. The result is
-    positive definite with R >= diag(floor). Non-finite R falls back to diag(floor)."""
+    """Symmetrise R and bound it: in coordinates scaled by sqrt(floor) (so channels of very
+    different units compare), every eigenvalue is clipped into [1, R_CEILING]. The result is
+    positive definite with R >= diag(floor) (to rounding, relative to the ceiling).
+    Non-finite R falls back to diag(floor)."""
     if not np.all(np.isfinite(R)):
         return np.diag(floor).astype(float), True
     s = np.sqrt(floor)
     Rn = 0.5 * (R + R.T) / np.outer(s, s)
-    w, V = np.linalg.eigh(Rn)
-    if w[0] >= 1.0:
+    if np.trace(Rn) <= R_CEILING and _psd_shifted(Rn):
         return 0.5 * (R + R.T), False
-    w = np.maximum(w, 1.0)
+    w, V = np.linalg.eigh(Rn)
+    w = np.clip(w, 1.0, R_CEILING)
     return ((V * w) @ V.T) * np.outer(s, s), True
+
+
+def _psd_shifted(Rn: np.ndarray) -> bool:
+    """Is Rn - I positive semi-definite? Sylvester-type test on all principal minors (cheap
+    for the 2x2 and 3x3 cases the ECU has); other sizes use the eigenvalues."""
+    M = Rn - np.eye(Rn.shape[0])
+    d = M.diagonal()
+    if np.any(d < 0.0):
+        return False
+    if M.shape[0] == 2:
+        return d[0] * d[1] - M[0, 1] ** 2 >= 0.0
+    if M.shape[0] == 3:
+        m01 = d[0] * d[1] - M[0, 1] ** 2
+        m02 = d[0] * d[2] - M[0, 2] ** 2
+        m12 = d[1] * d[2] - M[1, 2] ** 2
+        return min(m01, m02, m12) >= 0.0 and np.linalg.det(M) >= 0.0
+    return bool(np.linalg.eigvalsh(M)[0] >= 0.0)
 
 
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
@@ -77,8 +98,9 @@ def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
     S = HPHt + st.R
     K = np.linalg.solve(S, HP).T            # P H^T S^-1  (S symmetric)
     st.x = st.x + K @ eps
-    I_KH = np.eye(5) - K @ H
-    P = I_KH @ st.P @ I_KH.T + K @ st.R @ K.T
+    # Joseph form (I-KH) P (I-KH)^T + K R K^T, expanded: P - K HP - (K HP)^T + K S K^T
+    KHP = K @ HP
+    P = st.P - KHP - KHP.T + K @ S @ K.T
     st.P = 0.5 * (P + P.T)
     st.innovation = eps
 

@@ -123,7 +123,7 @@ def grade_band_variance(speed: float, dt: float, hp_a: float, lp_a: float,
     a2 = (2 * math.pi * N0_PER_M) ** 2 * CONVENTIONS[convention] * speed
     phi = math.exp(-lam * dt)
     q = a2 * (1 - phi * phi) / (2 * lam)
-    w = np.linspace(0.0, math.pi, 1 << 18)
+    w = np.concatenate([[0.0], np.geomspace(1e-8, math.pi, 6000)])  # resolves the road pole
     z1 = np.exp(-1j * w)
     s_road = q / np.abs(1 - phi * z1) ** 2
     H = ((1 - z1) / dt) * (hp_a * (1 - z1) / (1 - hp_a * z1)) * (lp_a / (1 - (1 - lp_a) * z1))

@@ -115,7 +115,8 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     twin.reset(zf[0])
     state = ecu.init(p)
     sha = hashlib.sha256()
-    names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "road_est", "dtd_est")
+    names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "road_est", "dtd_est",
+             "force_cmd")
     rec = {k: np.empty(n) for k in names}
     grade_est = np.empty(n, dtype=np.int16)
     mode_act = np.empty(n, dtype=np.int8)
@@ -152,6 +153,7 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         rec["p_vrel"][k] = twin.x[0] - twin.x[1]
         rec["road_est"][k] = out.road_est_um * 1e-6
         rec["dtd_est"][k] = out.dtd_est_um * 1e-6
+        rec["force_cmd"][k] = out.force_cmd_n
         grade_est[k] = out.grade
         mode_act[k] = out.active_mode
         stored[k] = active.ledger.stored_j

@@ -1,0 +1,224 @@
+"""Unit tests of the firmware parts: ADC plausibility, the mode state machine, the actuator
+stage, PID and BP-PID."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from firmware import actuator, adc, ecu, modes
+from firmware import params as fp
+from firmware.control import bppid, pid
+from hil.config import default_vehicle
+from hil.ecu_params import build
+
+P = build(default_vehicle())
+
+
+# -- ADC ---------------------------------------------------------------------------------------
+
+def raw(**over):
+    mid = {name: getattr(P.adc, name).full_scale // 2 for name in adc.CHANNELS}
+    mid.update(over)
+    return mid
+
+
+def test_adc_conversion_and_plausibility():
+    st = adc.AdcState()
+    v, faults = adc.sample(P.adc, st, raw())
+    assert faults == 0
+    ch = P.adc.body_accel
+    assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)
+    for bad in (-1, ch.full_scale + 1, float("nan"), None, 12.5, True):
+        st = adc.AdcState()
+        adc.sample(P.adc, st, raw())
+        v, faults = adc.sample(P.adc, st, raw(body_accel=bad))
+        assert faults == adc.FAULT_BIT["body_accel"], bad
+        assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)  # held
+
+
+def test_adc_stuck_at_rail_and_recovery_hysteresis():
+    st = adc.AdcState()
+    faults = 0
+    for k in range(P.adc.rail_ticks):
+        _, faults = adc.sample(P.adc, st, raw(wheel_accel=P.adc.wheel_accel.full_scale))
+        assert bool(faults) == (k + 1 >= P.adc.rail_ticks)
+    for k in range(P.adc.recover_ticks):
+        _, faults = adc.sample(P.adc, st, raw())
+        assert bool(faults) == (k + 1 < P.adc.recover_ticks)
+    # speed at 0 counts is a car standing still, not a fault
+    st = adc.AdcState()
+    for _ in range(3 * P.adc.rail_ticks):
+        _, faults = adc.sample(P.adc, st, raw(speed=0))
+    assert faults == 0
+
+
+# -- modes -------------------------------------------------------------------------------------
+
+MP = P.modes
+
+
+def run_modes(events, st=None, dtd=0.0, fault=False):
+    st = st or modes.init(MP)
+    out = []
+    for grade, kind, mode, counter in events:
+        out.append(modes.step(MP, st, grade, kind, mode, counter, dtd, fault))
+    return st, out
+
+
+def test_recommend_but_switch_only_on_acceptance():
+    st, out = run_modes([(1, 0, 0, 0)] * 5)
+    assert st.recommended == fp.MODE_COMFORT and out[-1] == MP.initial_mode
+    st, out = run_modes([(1, fp.REQ_ACCEPT, fp.MODE_COMFORT, 1)], st)
+    assert out[-1] == fp.MODE_COMFORT and st.events & modes.EVT_ACCEPTED
+    # a repeated request (same counter) is not acted on again
+    st, out = run_modes([(3, fp.REQ_ACCEPT, fp.MODE_COMPREHENSIVE, 1)], st)
+    assert out[-1] == fp.MODE_COMFORT
+    # accepting a recommendation that is not the current one is invalid
+    st, out = run_modes([(3, fp.REQ_ACCEPT, fp.MODE_SAFETY, 2)], st)
+    assert out[-1] == fp.MODE_COMFORT and st.events & modes.EVT_INVALID_REQUEST
+
+
+def test_refuse_and_choose():
+    st, out = run_modes([(0, fp.REQ_REFUSE, 0, 1)])
+    assert out[-1] == MP.initial_mode and st.events & modes.EVT_REFUSED
+    st, out = run_modes([(0, fp.REQ_CHOOSE, fp.MODE_SAFETY, 2)], st)
+    assert out[-1] == fp.MODE_SAFETY and st.recommended == fp.MODE_ENERGY
+    for bad in (7, -1, 255):
+        st, out = run_modes([(0, fp.REQ_CHOOSE, bad, 3 + bad % 5)], st)
+        assert out[-1] == fp.MODE_SAFETY and st.events & modes.EVT_INVALID_REQUEST
+    st, out = run_modes([(0, 9, 0, 12)], st)
+    assert st.events & modes.EVT_INVALID_REQUEST
+
+
+def test_safety_override_first_then_back_to_driver_mode():
+    st, _ = run_modes([(0, fp.REQ_CHOOSE, fp.MODE_ENERGY, 1)])
+    limit = MP.safety_dtd_rms_limit
+    st, out = run_modes([(0, 0, 0, 1)], st, dtd=1.01 * limit)
+    assert out[-1] == fp.MODE_SAFETY and st.reason == modes.REASON_ROAD_HOLDING
+    # below the exit level but inside the hold time: stays
+    st, out = run_modes([(0, 0, 0, 1)] * (MP.safety_hold_ticks - 2), st, dtd=0.5 * limit)
+    assert out[-1] == fp.MODE_SAFETY
+    # the driver cannot leave safety while the override holds
+    st, out = run_modes([(0, fp.REQ_CHOOSE, fp.MODE_COMFORT, 2)], st, dtd=0.5 * limit)
+    assert out[-1] == fp.MODE_SAFETY
+    st, out = run_modes([(0, 0, 0, 2)] * 3, st, dtd=0.5 * limit)
+    assert out[-1] == fp.MODE_COMFORT and st.reason == modes.REASON_NONE   # the driver's choice
+
+
+def test_fault_forces_failsafe():
+    st, _ = run_modes([(1, fp.REQ_CHOOSE, fp.MODE_COMFORT, 1)])
+    st, out = run_modes([(1, 0, 0, 1)], st, fault=True)
+    assert out[-1] == fp.MODE_PASSIVE and st.reason == modes.REASON_FAULT
+
+
+def test_ecu_opens_the_bridge_on_a_sensor_fault_within_the_tick():
+    st = ecu.init(P)
+    mid = raw()
+    inp = ecu.Inputs(0, mid["body_accel"], mid["wheel_accel"], mid["susp_defl"],
+                     mid["motor_current"], 2000, fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
+    for k in range(400):
+        st, out = ecu.step(st, dataclasses.replace(inp, tick=k))
+    assert out.enable and out.active_mode == fp.MODE_SAFETY
+    st, out = ecu.step(st, dataclasses.replace(inp, tick=400, susp_defl=-5))
+    assert not out.enable and out.duty_q15 == 0 and out.faults & adc.FAULT_BIT["susp_defl"]
+    assert out.reason == modes.REASON_FAULT
+
+
+# -- actuator ----------------------------------------------------------------------------------
+
+def test_duty_rounding_and_saturation():
+    assert actuator.duty_to_q15(0.5) == 16384
+    assert actuator.duty_to_q15(-0.5) == -16384
+    assert actuator.duty_to_q15(1.0) == 32767 and actuator.duty_to_q15(-1.0) == -32768
+    assert actuator.duty_to_q15(7.0) == 32767 and actuator.duty_to_q15(-7.0) == -32768
+    assert actuator.duty_to_q15(1.5 / 32768) == 2 and actuator.duty_to_q15(-1.5 / 32768) == -2
+
+
+def test_current_reference_limits_and_efficiency():
+    pl = P.plant
+    big = actuator.current_reference(pl, 1e6, 0.1, True)
+    assert big == pytest.approx(actuator.CURRENT_MARGIN * pl.current_limit)
+    # motoring needs more current than the ideal, generating less
+    drive = actuator.current_reference(pl, 300.0, 0.1, False)
+    brake = actuator.current_reference(pl, -300.0, 0.1, False)
+    assert drive == pytest.approx(300.0 / (pl.efficiency * pl.force_constant))
+    assert brake == pytest.approx(-300.0 * pl.efficiency / pl.force_constant)
+
+
+def test_regen_voltage_keeps_power_flowing_into_storage():
+    pl = P.plant
+    for rel_vel in (0.3, -0.3):
+        for i_ref in (-50.0, -5.0, 0.0, 5.0, 50.0):
+            st = actuator.ActuatorState()
+            i_meas = 0.0
+            for _ in range(20):   # closed loop on a simple winding model
+                actuator.step(P.actuator, pl, st, i_ref, i_meas, rel_vel, True, 0.5)
+                emf = pl.force_constant * rel_vel
+                lo, hi = sorted((0.5 * st.emf, st.emf))
+                assert lo - 2e-3 <= st.voltage <= hi + 2e-3     # quantised duty
+                i_meas = (P.actuator.current_a * i_meas
+                          + P.actuator.current_b * (st.voltage - emf))
+                assert st.voltage * i_meas <= 1e-9              # power into the storage
+
+
+# -- PID / BP-PID ------------------------------------------------------------------------------
+
+def test_incremental_pid_equals_positional_without_leak():
+    rng = np.random.default_rng(0)
+    e = rng.normal(0, 1, 500)
+    st = pid.PidState()
+    kp, ki, kd, dt = 3.0, 40.0, 0.01, 0.001
+    for k in range(500):
+        u = pid.step(st, e[k], kp, ki, kd, 1.0, dt, 1e9)
+    e_prev = e[498]
+    positional = kp * e[499] + ki * dt * e.sum() + kd * (e[499] - e_prev) / dt
+    assert u == pytest.approx(positional, rel=1e-9)
+
+
+def test_bppid_gains_stay_in_range_and_learn_deterministically():
+    def run():
+        st = bppid.init(P.control)
+        rng = np.random.default_rng(3)
+        gains = []
+        for _ in range(3000):
+            bppid.step(P.control, st, rng.normal(0, 0.6), 0.001)
+            gains.append(st.gains.copy())
+        return st, np.array(gains)
+
+    a, ga = run()
+    b, gb = run()
+    assert np.array_equal(ga, gb)
+    assert np.all(ga > 0) and np.all(ga < P.control.bp_scale)
+    assert not np.allclose(a.w_o, P.control.bp_w_out)   # it learned
+    # learning lowers the BA error: the integral (skyhook) gain grows from its start
+    assert ga[-1, 1] > ga[0, 1]
+
+
+def test_bppid_derivatives_errata_13():
+    x = np.linspace(-3, 3, 13)
+    g = 0.5 * (1 + np.tanh(x))
+    assert np.allclose(g, np.exp(x) / (np.exp(x) + np.exp(-x)))
+    h = 1e-6
+    gp = (0.5 * (1 + np.tanh(x + h)) - 0.5 * (1 + np.tanh(x - h))) / (2 * h)
+    assert np.allclose(gp, 2 * g * (1 - g), atol=1e-8)
+    f = np.tanh(x)
+    fp_num = (np.tanh(x + h) - np.tanh(x - h)) / (2 * h)
+    assert np.allclose(fp_num, 1 - f ** 2, atol=1e-8)
+
+
+def test_ecu_is_deterministic():
+    def run():
+        st = ecu.init(P)
+        rng = np.random.default_rng(9)
+        outs = []
+        for k in range(2000):
+            r = raw(body_accel=int(2048 + rng.integers(-30, 30)), wheel_accel=int(2048 + rng.integers(-100, 100)),
+                    susp_defl=int(2048 + rng.integers(-50, 50)), speed=2000)
+            st, o = ecu.step(st, ecu.Inputs(k, r["body_accel"], r["wheel_accel"], r["susp_defl"],
+                                            r["motor_current"], r["speed"], fp.REQ_CHOOSE, fp.MODE_COMFORT, 1))
+            outs.append(o)
+        return outs
+
+    assert run() == run()
