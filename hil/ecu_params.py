@@ -33,7 +33,7 @@ class DesignOptions:
     akf_bias_adaptive: bool = False
     akf_forgetting: float = 0.9995
     akf_q_grade: str = "C"                # road intensity the AKF assumes before a grade estimate
-    akf_q_follows_grade: bool = True      # then the estimated G_q
+    akf_q_follows_grade: bool = True      # then the estimated G_q, at most the nominal
     classifier: int = 0                   # 0 road estimate (default), 1 paper's Table 2
     safety_bound: float = 0.955           # LQR safety design: BA, SWS <= bound * passive
     comprehensive_bound: tuple = (0.93, 0.97, 0.97)  # GA-LQR constraint (44) with margins,
