@@ -10,8 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hil.cli import (add_json_argument, add_vehicle_argument, emit, route_or_exit, seed_arg,
-                     vehicle_or_exit)
+from hil.cli import add_json_argument, add_vehicle_argument, route_or_exit, seed_arg, vehicle_or_exit
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,17 +60,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r.duration_s:6.1f} s  {r.description}")
         return 0
 
-    from hil.report import drive_report, render_drive, write_json
+    from hil.report import drive_report, finish, render_drive
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route).with_convention(args.convention)
     report = drive_report(cfg, route, args.seed, nonlinear=args.nonlinear,
-                          show_progress=not args.json and sys.stderr.isatty())
-    if args.out:
-        path = write_json(report, args.out, "drive.json")
-        if not args.json:
-            print(f"report written to {path}")
-    emit(report, args.json, render_drive)
+                          show_progress=not args.json)
+    finish(report, args.out, "drive.json", args.json, render_drive)
     return 0
 
 
@@ -79,35 +74,20 @@ def _sim(args) -> int:
     from pathlib import Path
 
     from hil import sil
+    from hil.cli import fail, progress_bar
     from hil.config import ConfigError
-    from hil.report import render_sil, write_json
+    from hil.report import finish, render_sil
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route)
-    bar, progress = None, None
-    if not args.json and sys.stderr.isatty():
-        from rich.progress import Progress
-
-        bar = Progress(transient=True)
-        bar.start()
-        task = bar.add_task(f"SIL {route.name} ({args.mode})", total=1)
-        progress = lambda k, n: bar.update(task, completed=k, total=n)  # noqa: E731
     try:
-        report, _ = sil.run(cfg, route, args.mode, args.seed, controller=args.controller,
-                            gains_file=Path(args.gains) if args.gains else None,
-                            progress=progress)
+        with progress_bar(f"SIL {route.name} ({args.mode})", not args.json) as progress:
+            report, _ = sil.run(cfg, route, args.mode, args.seed, controller=args.controller,
+                                gains_file=Path(args.gains) if args.gains else None,
+                                progress=progress)
     except ConfigError as exc:
-        from hil.cli import fail
-
         fail(str(exc))
-    finally:
-        if bar is not None:
-            bar.stop()
-    if args.out:
-        path = write_json(report, args.out, "report.json")
-        if not args.json:
-            print(f"report written to {path}")
-    emit(report, args.json, render_sil)
+    finish(report, args.out, "report.json", args.json, render_sil)
     return 0
 
 

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
-from typing import Any, Callable, NoReturn
+from typing import Any, Callable, Iterator, NoReturn, Optional
 
 from hil.config import ConfigError, VehicleConfig, load_vehicle
 from hil.road import GRADES, Route, load_route
@@ -94,3 +95,21 @@ def emit(obj: dict, as_json: bool, render: Callable[[dict], None]) -> None:
         sys.stdout.write("\n")
     else:
         render(obj)
+
+
+@contextlib.contextmanager
+def progress_bar(label: str, enabled: bool) -> Iterator[Optional[Callable[[int, int], None]]]:
+    """A transient rich progress bar on stderr for long work, as a ``progress(done, total)``
+    callback; ``None`` when disabled (JSON output, or stderr is not a terminal)."""
+    if not (enabled and sys.stderr.isatty()):
+        yield None
+        return
+    from rich.progress import Progress
+
+    bar = Progress(transient=True)
+    bar.start()
+    task = bar.add_task(label, total=1)
+    try:
+        yield lambda done, total: bar.update(task, completed=done, total=total)
+    finally:
+        bar.stop()

@@ -6,7 +6,8 @@ import dataclasses
 import json
 from pathlib import Path
 
-from hil.config import NonlinearParams, VehicleConfig
+from hil.cli import progress_bar
+from hil.config import VehicleConfig
 from hil.drive import drive, segment_masks
 from hil.model import linear_model, passive_rms
 from hil.road import Route
@@ -19,19 +20,8 @@ def drive_report(cfg: VehicleConfig, route: Route, seed: int, *, nonlinear: bool
     if nonlinear:
         nl = dataclasses.replace(cfg.nonlinear, bump_stops=True, tire_lift_off=True)
         cfg = dataclasses.replace(cfg, nonlinear=nl)
-    progress, bar = None, None
-    if show_progress:
-        from rich.progress import Progress
-
-        bar = Progress(transient=True)
-        bar.start()
-        task = bar.add_task(f"driving {route.name}", total=1)
-        progress = lambda k, n: bar.update(task, completed=k, total=n)  # noqa: E731
-    try:
+    with progress_bar(f"driving {route.name}", show_progress) as progress:
         trace = drive(cfg, route, seed, progress=progress)
-    finally:
-        if bar is not None:
-            bar.stop()
     segments = []
     for seg, mask in zip(route.segments, segment_masks(trace, SEGMENT_SETTLE_S)):
         m = trace.metrics(mask)
@@ -52,6 +42,17 @@ def drive_report(cfg: VehicleConfig, route: Route, seed: int, *, nonlinear: bool
         "segment_settle_s": SEGMENT_SETTLE_S,
         "segments": segments, "whole_route": whole.as_dict(),
     }
+
+
+def finish(report: dict, out_dir: str | None, name: str, as_json: bool, render) -> None:
+    """Write ``out_dir/name`` (if asked), then print the report as JSON or a table."""
+    from hil.cli import emit
+
+    if out_dir:
+        path = write_json(report, out_dir, name)
+        if not as_json:
+            print(f"report written to {path}")
+    emit(report, as_json, render)
 
 
 def write_json(report: dict, out_dir: str | Path, name: str) -> Path:

@@ -13,7 +13,7 @@ import argparse
 import sys
 
 from hil.cli import (add_json_argument, add_vehicle_argument, emit, grade_arg, positive_float,
-                     seed_arg, speed_arg, vehicle_or_exit)
+                     progress_bar, seed_arg, speed_arg, vehicle_or_exit)
 from hil.config import VehicleConfig
 from hil.drive import drive
 from hil.model import linear_model, passive_rms
@@ -160,20 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     cfg = vehicle_or_exit(args.vehicle)
 
     if args.command == "passive":
-        progress = None
-        if args.simulate and not args.json and sys.stderr.isatty():
-            from rich.progress import Progress
-
-            bar = Progress(transient=True)
-            bar.start()
-            task = bar.add_task("simulating", total=1)
-            progress = lambda k, n: bar.update(task, completed=k, total=n)  # noqa: E731
-        try:
+        with progress_bar("simulating", bool(args.simulate) and not args.json) as progress:
             out = passive(cfg, args.grade, args.speed, args.convention, args.cutoff,
                           args.simulate, args.seed, progress)
-        finally:
-            if progress is not None:
-                bar.stop()
         emit(out, args.json, _render_passive)
     elif args.command == "thresholds":
         emit(thresholds(cfg, args.convention, args.cutoff), args.json, _render_thresholds)
