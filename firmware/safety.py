@@ -1,0 +1,125 @@
+"""Frame validity: CRC-8 CHECKSUM, 4-bit COUNTER, DLC, and receive timeouts with hysteresis.
+
+Written once, here; the HIL codec reuses it (two copies drift). Pure code: time is a tick count.
+
+CHECKSUM: CRC-8 SAE J1850 (polynomial 0x1D, init 0xFF, final XOR 0xFF) over the message ID as
+two bytes (little-endian) followed by the payload bytes, the CHECKSUM byte left out (the ID
+protects against a frame masquerading as another message). COUNTER: increments by 1 per frame and wraps
+at 15; a repeat or a jump is a fault. A message is *valid* only after ``recover_frames``
+consecutive good frames (hysteresis) and becomes invalid on any bad frame or when nothing
+arrived for ``timeout_ticks``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+CRC8_POLY = 0x1D
+CRC8_INIT = 0xFF
+CRC8_XOROUT = 0xFF
+
+
+def _table() -> tuple[int, ...]:
+    out = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ CRC8_POLY) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        out.append(crc)
+    return tuple(out)
+
+
+_CRC_TABLE = _table()
+
+
+def crc8(data: bytes | bytearray) -> int:
+    crc = CRC8_INIT
+    for b in data:
+        crc = _CRC_TABLE[crc ^ b]
+    return crc ^ CRC8_XOROUT
+
+
+# fault bits of frame validity (the ECU's fault word, above the ADC and estimator bits)
+FAULT_DLC = 1 << 10
+FAULT_CHECKSUM = 1 << 11
+FAULT_COUNTER = 1 << 12
+FAULT_TIMEOUT = 1 << 13
+FAULT_UNKNOWN_ID = 1 << 14
+
+
+@dataclass(frozen=True)
+class FrameSpec:
+    """What the receiver knows of one message."""
+
+    msg_id: int
+    dlc: int
+    counter_bit: int | None       # little-endian start bit of the 4-bit COUNTER
+    checksum_byte: int | None     # byte index of the 8-bit CHECKSUM
+    timeout_ticks: int = 0        # 0: no timeout supervision
+    recover_frames: int = 1
+
+
+def checksum_of(spec: FrameSpec, data: bytes | bytearray) -> int:
+    body = (spec.msg_id & 0xFFFF).to_bytes(2, "little") + bytes(
+        b for i, b in enumerate(data) if i != spec.checksum_byte)
+    return crc8(body)
+
+
+def counter_of(spec: FrameSpec, data: bytes | bytearray) -> int:
+    return (int.from_bytes(bytes(data), "little") >> spec.counter_bit) & 0xF
+
+
+def seal(spec: FrameSpec, data: bytes | bytearray, counter: int) -> bytes:
+    """Write COUNTER and CHECKSUM into a payload (the sender's side)."""
+    buf = bytearray(data)
+    if spec.counter_bit is not None:
+        word = int.from_bytes(bytes(buf), "little")
+        word &= ~(0xF << spec.counter_bit)
+        word |= (counter & 0xF) << spec.counter_bit
+        buf = bytearray(word.to_bytes(len(buf), "little"))
+    if spec.checksum_byte is not None:
+        buf[spec.checksum_byte] = checksum_of(spec, buf)
+    return bytes(buf)
+
+
+@dataclass
+class RxState:
+    valid: bool = False
+    good_run: int = 0
+    last_counter: int = -1
+    last_rx_tick: int = -1
+    faults: int = 0               # faults seen on the last frame / check
+
+
+def check_frame(spec: FrameSpec, st: RxState, data: bytes | bytearray, tick: int) -> bool:
+    """Check one received frame; updates validity. Returns True if the frame may be used."""
+    faults = 0
+    if len(data) != spec.dlc:
+        faults |= FAULT_DLC
+    else:
+        if spec.checksum_byte is not None and data[spec.checksum_byte] != checksum_of(spec, data):
+            faults |= FAULT_CHECKSUM
+        if spec.counter_bit is not None and not faults:
+            c = counter_of(spec, data)
+            if st.last_counter >= 0 and c != (st.last_counter + 1) & 0xF:
+                faults |= FAULT_COUNTER
+            st.last_counter = c
+    st.faults = faults
+    if faults:
+        st.valid, st.good_run = False, 0
+        return False
+    st.last_rx_tick = tick
+    st.good_run += 1
+    if st.good_run >= spec.recover_frames:
+        st.valid = True
+    return True
+
+
+def check_timeout(spec: FrameSpec, st: RxState, tick: int) -> bool:
+    """Call every tick. False (and invalid) when the message has not arrived in time."""
+    if spec.timeout_ticks and (st.last_rx_tick < 0 or tick - st.last_rx_tick > spec.timeout_ticks):
+        if st.last_rx_tick >= 0 or tick > spec.timeout_ticks:
+            st.valid, st.good_run = False, 0
+            st.faults |= FAULT_TIMEOUT
+            return False
+    return True

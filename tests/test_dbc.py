@@ -1,0 +1,112 @@
+"""The DBC, the codec and the frame-validity code (issue: CAN hardware-in-the-loop, part 1)."""
+
+import math
+
+import canmatrix.formats
+import numpy as np
+import pytest
+
+from firmware import safety
+from hil.codec import DBC_PATH, Codec, raw_range, to_raw
+from tools.busload import bus_load
+
+CODEC = Codec()
+SAFETY_RELEVANT = ("ACTUATOR_CMD", "PLANT_SENSORS", "VEHICLE_SPEED", "ECU_STATUS",
+                   "MODE_RECOMMEND", "DRIVER_REQUEST")
+
+
+def test_dbc_loads_in_cantools_and_canmatrix_and_follows_conventions():
+    cm = canmatrix.formats.loadp_flat(str(DBC_PATH))
+    assert {f.name for f in cm.frames} == {m.name for m in CODEC.db.messages}
+    for m in CODEC.db.messages:
+        assert m.name == m.name.upper() and m.cycle_time, m.name
+        for s in m.signals:
+            assert s.name == s.name.upper() and s.byte_order == "little_endian"
+        if m.name in SAFETY_RELEVANT:
+            names = [s.name for s in m.signals]
+            assert names[-2:] == ["COUNTER", "CHECKSUM"], m.name
+            sig = {s.name: s for s in m.signals}
+            assert sig["COUNTER"].length == 4 and sig["CHECKSUM"].length == 8
+    # truth lives in its own message, which the ECU does not receive
+    truth = CODEC.message("SIM_TRUTH")
+    assert all("ECU" not in s.receivers for s in truth.signals)
+
+
+def test_every_signal_round_trips_over_its_full_range():
+    rng = np.random.default_rng(0)
+    for m in CODEC.db.messages:
+        for sig in m.signals:
+            if sig.name in ("COUNTER", "CHECKSUM"):
+                continue
+            lo, hi = raw_range(sig)
+            raws = {lo, hi, 0 if lo <= 0 <= hi else lo, *rng.integers(lo, hi, 50, endpoint=True).tolist()}
+            for raw in raws:
+                phys = raw * sig.scale + sig.offset
+                data = CODEC.encode(m.name, {sig.name: phys}, counter=5)
+                dec = CODEC.decode(m.frame_id, data)
+                assert dec.ok, (m.name, sig.name)
+                assert dec.signals[sig.name] == pytest.approx(phys, abs=1e-9 * max(1.0, abs(phys)))
+
+
+def test_encode_rounds_half_away_from_zero_and_saturates():
+    duty = CODEC.message("ACTUATOR_CMD").get_signal_by_name("DUTY")
+    q = duty.scale
+    assert to_raw(duty, 2.5 * q) == 3 and to_raw(duty, -2.5 * q) == -3
+    assert to_raw(duty, 1.5 * q) == 2 and to_raw(duty, -1.5 * q) == -2    # not to even
+    assert to_raw(duty, 5.0) == 32767 and to_raw(duty, -5.0) == -32768     # saturate
+    assert to_raw(duty, math.inf) == 32767 and to_raw(duty, math.nan) == 0
+    speed = CODEC.message("VEHICLE_SPEED").get_signal_by_name("SPEED")
+    assert to_raw(speed, -1.0) == 0 and to_raw(speed, 1e6) == 8191
+    assert to_raw(speed, 0.005) == 1 and to_raw(speed, 0.00499) == 0
+
+
+def test_crc8_sae_j1850_check_value():
+    assert safety.crc8(b"123456789") == 0x4B
+
+
+def test_checksum_counter_dlc_and_unknown_ids():
+    m = CODEC.message("PLANT_SENSORS")
+    spec = CODEC.specs[m.frame_id]
+    st = safety.RxState()
+    frames = [CODEC.encode("PLANT_SENSORS", {"BODY_ACCEL_RAW": 100 + k}, counter=k % 16) for k in range(20)]
+    assert all(CODEC.decode(m.frame_id, f, st, k).ok for k, f in enumerate(frames))
+    assert st.valid
+    bad = bytearray(CODEC.encode("PLANT_SENSORS", {}, counter=4))
+    bad[0] ^= 0x01                                               # corrupted payload
+    d = CODEC.decode(m.frame_id, bytes(bad), st, 20)
+    assert not d.ok and d.faults & safety.FAULT_CHECKSUM and not st.valid
+    assert CODEC.decode(m.frame_id, frames[0][:7]).faults & safety.FAULT_DLC
+    assert CODEC.decode(0x7FF, frames[0]).faults & safety.FAULT_UNKNOWN_ID
+    # counter repeat and jump
+    st = safety.RxState()
+    for k, c in enumerate((1, 2, 3)):
+        assert safety.check_frame(spec, st, safety.seal(spec, frames[0], c), k)
+    assert not safety.check_frame(spec, st, safety.seal(spec, frames[0], 3), 3)
+    assert st.faults & safety.FAULT_COUNTER
+    assert not safety.check_frame(spec, st, safety.seal(spec, frames[0], 9), 4)
+    # the same message ID protects against masquerading: another ID, same payload, fails
+    other = CODEC.specs[CODEC.message("ECU_STATUS").frame_id]
+    assert safety.checksum_of(other, frames[0]) != frames[0][spec.checksum_byte]
+
+
+def test_validity_hysteresis_and_timeout():
+    spec = safety.FrameSpec(msg_id=0x100, dlc=8, counter_bit=52, checksum_byte=7,
+                            timeout_ticks=3, recover_frames=4)
+    st = safety.RxState()
+    payload = bytes(8)
+    for k in range(4):
+        safety.check_frame(spec, st, safety.seal(spec, payload, k), k)
+        assert st.valid == (k == 3)
+    assert safety.check_timeout(spec, st, 6)
+    assert not safety.check_timeout(spec, st, 7) and not st.valid
+    assert st.faults & safety.FAULT_TIMEOUT
+
+
+def test_bus_load_from_cycle_times():
+    o = bus_load(500_000.0)
+    assert 0.0 < o["load"] < 0.8
+    names = {r["message"] for r in o["messages"]}
+    assert {"ACTUATOR_CMD", "PLANT_SENSORS"} <= names
+    # an 8-byte frame at 1 kHz: 47 + 64 + 24 stuff bits = 135 bits -> 27 % of 500 kbit/s
+    row = next(r for r in o["messages"] if r["message"] == "PLANT_SENSORS")
+    assert row["bits_per_frame"] == 135 and row["load"] == pytest.approx(0.27)

@@ -1,0 +1,66 @@
+"""Bus load of the DBC's cyclic messages at a given bit rate (default 500 kbit/s).
+
+    python -m tools.busload [--bitrate 500000] [--json]
+
+Frame length of a classic CAN data frame with an 11-bit ID: 47 + 8 n bits, plus worst-case
+bit stuffing floor((34 + 8 n - 1) / 4) over the stuffed part (SOF to CRC).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from hil.cli import add_json_argument, emit
+from hil.codec import DBC_PATH, Codec
+
+
+def frame_bits(dlc: int, worst_case: bool = True) -> int:
+    bits = 47 + 8 * dlc
+    if worst_case:
+        bits += (34 + 8 * dlc - 1) // 4
+    return bits
+
+
+def bus_load(bitrate: float = 500_000.0) -> dict:
+    codec = Codec()
+    rows = []
+    for m in codec.db.messages:
+        if not m.cycle_time:
+            continue
+        rate = 1000.0 / m.cycle_time
+        bits = frame_bits(m.length)
+        rows.append({"message": m.name, "id": m.frame_id, "dlc": m.length,
+                     "cycle_ms": m.cycle_time, "bits_per_frame": bits,
+                     "bits_per_s": bits * rate, "load": bits * rate / bitrate})
+    total = sum(r["bits_per_s"] for r in rows)
+    return {"dbc": str(DBC_PATH), "bitrate": bitrate, "messages": rows,
+            "total_bits_per_s": total, "load": total / bitrate}
+
+
+def _render(o: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"Bus load at {o['bitrate'] / 1000:g} kbit/s (worst-case stuffing)")
+    for c in ("message", "id", "DLC", "cycle ms", "bits/frame", "load"):
+        t.add_column(c, justify="right")
+    for r in o["messages"]:
+        t.add_row(r["message"], hex(r["id"]), str(r["dlc"]), f"{r['cycle_ms']:g}",
+                  str(r["bits_per_frame"]), f"{r['load']:.1%}")
+    t.add_row("total", "", "", "", "", f"{o['load']:.1%}")
+    Console().print(t)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tools.busload", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bitrate", type=float, default=500_000.0)
+    add_json_argument(parser)
+    args = parser.parse_args(argv)
+    emit(bus_load(args.bitrate), args.json, _render)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
