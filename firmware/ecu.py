@@ -14,15 +14,14 @@ Time enters only as the tick count in the inputs.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from firmware import actuator, adc, akf, grade, modes
 from firmware.control import bppid, pid, regen
 from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_NONE, CTRL_PID, CTRL_REGEN,
-                             CTRL_SKYHOOK, GRADE_UNKNOWN, MODE_COMFORT, MODE_COMPREHENSIVE,
-                             MODE_ENERGY, MODE_PASSIVE, MODE_SAFETY, EcuParams)
+                             CTRL_SKYHOOK, MODE_ENERGY, MODE_PASSIVE, EcuParams)
 
 # fault word: low byte = ADC channels (firmware.adc.FAULT_BIT); higher bits:
 FAULT_NONFINITE_ESTIMATE = 1 << 8   # the estimator diverged (reset, fail-safe this tick)
@@ -80,12 +79,9 @@ class EcuState:
     ctrl: int = CTRL_NONE            # controller now driving
     ctrl_from: int = CTRL_NONE       # controller being faded out
     ramp: int = 0                    # ticks into the crossfade
-    mode_prev: int = MODE_PASSIVE
-    force_prev: float = 0.0          # force command of the last tick
     force_meas_prev: float = 0.0     # force from the measured current, last tick
-    dtd2_ema: float = 0.0
+    dtd2_ema: float = 0.0            # tyre-deflection mean square (road-holding check)
     tick: int = -1
-    extra: dict = field(default_factory=dict)
 
 
 def init(params: EcuParams) -> EcuState:
@@ -93,8 +89,7 @@ def init(params: EcuParams) -> EcuState:
                   grade=grade.GradeState(), modes=modes.init(params.modes),
                   actuator=actuator.ActuatorState(), bppid=bppid.init(params.control),
                   pid=pid.PidState())
-    st.mode_prev = st.modes.active_mode
-    st.ctrl = params.modes.controllers[st.mode_prev]
+    st.ctrl = params.modes.controllers[st.modes.active_mode]
     return st
 
 
@@ -131,8 +126,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     rel_prev = x_prev[0] - x_prev[1]
     g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
     force_meas = g * plant.force_constant * i_meas
-    m = P.akf.H.shape[0]
-    z = np.array((ba, defl, wa)[:m]) if m == 3 else np.array((ba, defl))
+    z = np.array((ba, defl, wa)[:P.akf.H.shape[0]])   # [BA, SWS] or [BA, SWS, WA]
     # road intensity for the process noise: the grade estimate's G_q once there is one
     # (Sage-Husa adaptation of R needs Q about right on smooth roads, where sensor noise
     # matters), capped at the calibrated nominal (a larger Q on rough roads only adds
@@ -189,14 +183,12 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     else:
         actuator.reset(st.actuator)
         duty, force = 0, 0.0
-    st.force_prev = force
-    st.mode_prev = mode
     # 7. status
     gq_log = st.grade.log_gq
     out = Outputs(
         duty_q15=duty, regen=regen_on and active, enable=active,
         recommended_mode=st.modes.recommended, active_mode=mode,
-        grade=g_est if g_est != GRADE_UNKNOWN else GRADE_UNKNOWN, faults=faults,
+        grade=g_est, faults=faults,
         reason=st.modes.reason, events=st.modes.events, override=st.modes.override,
         force_cmd_n=actuator.round_half_away(force),
         road_est_um=actuator.round_half_away(float(x[4]) * 1e6),

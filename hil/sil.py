@@ -123,7 +123,6 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     stored = np.empty(n)
     drawn = np.empty(n)
     last = None
-    speed_ch = cfg.sensors.speed
     report_every = max(1, n // 200)
     for k in range(n):
         if noise_step is not None and k * dt >= noise_step[0]:
@@ -160,17 +159,15 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         drawn[k] = active.ledger.supply_drawn_j
         if progress is not None and (k % report_every == 0 or k == n - 1):
             progress(k + 1, n)
-    del speed_ch
     true_grade = np.array([true_grade_index(s.grade) for s in route.segments])[timeline.segment]
     trace = SilTrace(dt, timeline.segment, true_grade,
                      dict(rec, grade_est=grade_est, mode=mode_act, stored=stored, drawn=drawn,
                           zf=zf[1:]))
-    report = _report(cfg, route, mode, controller, seed, p, trace, active, sha.hexdigest(),
-                     state)
+    report = _report(cfg, route, mode, controller, seed, trace, active, sha.hexdigest(), state)
     return report, trace
 
 
-def _report(cfg, route, mode, controller, seed, p, trace, plant, digest, state) -> dict:
+def _report(cfg, route, mode, controller, seed, trace, plant, digest, state) -> dict:
     dt = trace.dt_s
     a = trace.arrays
     settle = int(round(SETTLE_S / dt))

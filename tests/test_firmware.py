@@ -2,7 +2,6 @@
 stage, PID and BP-PID."""
 
 import dataclasses
-import math
 
 import numpy as np
 import pytest
