@@ -221,3 +221,14 @@ def test_ecu_is_deterministic():
         return outs
 
     assert run() == run()
+
+
+def test_paper_table2_rule():
+    from firmware.grade import paper_rule
+
+    g = P.grade
+    assert paper_rule(0.5 * g.dtd1, 0.5 * g.ba1, g) == 0          # A: energy feedback
+    assert paper_rule(0.5 * g.dtd1, 1.0 * g.ba1, g) == 1          # B: BA >= threshold
+    assert paper_rule(1.0 * g.dtd1, g.ba2, g) == 2                # C: DTD >= threshold, BA <= ba2
+    assert paper_rule(2.0 * g.dtd1, 1.01 * g.ba2, g) == 3         # D
+    assert g.ba1 < g.ba2                                          # B@10 below C@30, from the model
