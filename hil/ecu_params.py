@@ -36,7 +36,7 @@ class DesignOptions:
     akf_q_follows_grade: bool = True      # then the estimated G_q, at most the nominal
     classifier: int = 0                   # 0 road estimate (default), 1 paper's Table 2
     safety_bound: float = 0.955           # LQR safety design: BA, SWS <= bound * passive
-    comprehensive_bound: tuple = (0.93, 0.97, 0.97)  # GA-LQR constraint (44) with margins,
+    comprehensive_bound: tuple = (0.95, 0.95, 0.95)  # GA-LQR constraint (44) with margins,
     # per output [BA, SWS, DTD]: the ECU's estimation and force tracking cost a few per cent
     skyhook_c: float = 3000.0
     pid_ki: float = 3500.0
