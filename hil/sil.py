@@ -9,6 +9,7 @@ switch and bridge enable -> the passive twin steps. Every input and output of th
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import struct
 from dataclasses import dataclass, field
@@ -97,8 +98,11 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     if mode not in MODES and mode != "auto":
         raise ValueError(f"unknown mode {mode!r}")
     dt = cfg.sim.plant_dt_s
-    opts = opts or DesignOptions(dt_s=dt)
+    # in this harness the ECU ticks once per plant step
+    opts = dataclasses.replace(opts, dt_s=dt) if opts else DesignOptions(dt_s=dt)
     p = params or build(cfg, opts, gains_file)
+    if abs(p.dt_s - dt) > 1e-12:
+        raise ValueError(f"ECU tick {p.dt_s} s differs from the plant step {dt} s")
     if controller is not None:
         target = fp.MODE_COMFORT if mode in ("auto", "passive") else MODES[mode]
         p = with_controllers(p, target, CONTROLLERS[controller])

@@ -232,3 +232,13 @@ def test_paper_table2_rule():
     assert paper_rule(1.0 * g.dtd1, g.ba2, g) == 2                # C: DTD >= threshold, BA <= ba2
     assert paper_rule(2.0 * g.dtd1, 1.01 * g.ba2, g) == 3         # D
     assert g.ba1 < g.ba2                                          # B@10 below C@30, from the model
+
+
+def test_sil_refuses_an_ecu_tick_that_differs_from_the_plant_step():
+    from hil import sil
+    from hil.ecu_params import DesignOptions
+    from hil.road import constant_route
+
+    other = build(default_vehicle(), DesignOptions(dt_s=0.002))
+    with pytest.raises(ValueError, match="plant step"):
+        sil.run(default_vehicle(), constant_route("B", 20.0, 1.0), "comfort", 1, params=other)
