@@ -59,20 +59,23 @@ def guard_r(R: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 def _psd_shifted(Rn: np.ndarray) -> bool:
-    """Is Rn - I positive semi-definite? Sylvester-type test on all principal minors (cheap
-    for the 2x2 and 3x3 cases the ECU has); other sizes use the eigenvalues."""
-    M = Rn - np.eye(Rn.shape[0])
-    d = M.diagonal()
-    if np.any(d < 0.0):
-        return False
-    if M.shape[0] == 2:
-        return d[0] * d[1] - M[0, 1] ** 2 >= 0.0
-    if M.shape[0] == 3:
-        m01 = d[0] * d[1] - M[0, 1] ** 2
-        m02 = d[0] * d[2] - M[0, 2] ** 2
-        m12 = d[1] * d[2] - M[1, 2] ** 2
-        return min(m01, m02, m12) >= 0.0 and np.linalg.det(M) >= 0.0
-    return bool(np.linalg.eigvalsh(M)[0] >= 0.0)
+    """Is Rn - I positive semi-definite? All principal minors >= 0, in plain float arithmetic
+    for the 2x2 and 3x3 cases the ECU has (a numpy call per minor costs more than the filter
+    update); other sizes use the eigenvalues."""
+    n = Rn.shape[0]
+    if n == 3:
+        (a, b, c), (_, e, f), (_, _, i) = Rn.tolist()
+        a, e, i = a - 1.0, e - 1.0, i - 1.0
+        if a < 0.0 or e < 0.0 or i < 0.0:
+            return False
+        if a * e - b * b < 0.0 or a * i - c * c < 0.0 or e * i - f * f < 0.0:
+            return False
+        return a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c) >= 0.0
+    if n == 2:
+        (a, b), (_, e) = Rn.tolist()
+        a, e = a - 1.0, e - 1.0
+        return a >= 0.0 and e >= 0.0 and a * e - b * b >= 0.0
+    return bool(np.linalg.eigvalsh(Rn - np.eye(n))[0] >= 0.0)
 
 
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
