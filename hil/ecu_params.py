@@ -16,7 +16,7 @@ from scipy.linalg import expm
 
 from firmware import params as fp
 from hil.config import PACKAGE_DIR, ConfigError, VehicleConfig, default_vehicle
-from hil.model import linear_model, mechanics
+from hil.model import linear_model, mechanics, state_covariance, van_loan_integral
 from hil.road import (CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M)
 
 GAINS_DIR = PACKAGE_DIR / "gains"
@@ -51,18 +51,6 @@ class DesignOptions:
     initial_mode: int = fp.MODE_PASSIVE
 
 
-def _van_loan_noise(A: np.ndarray, G: np.ndarray, dt: float) -> np.ndarray:
-    n = A.shape[0]
-    M = np.zeros((2 * n, 2 * n))
-    M[:n, :n] = -A
-    M[:n, n:] = np.outer(G, G)
-    M[n:, n:] = A.T
-    E = expm(M * dt)
-    Phi_T = E[n:, n:]
-    Q = Phi_T.T @ E[:n, n:]
-    return 0.5 * (Q + Q.T)
-
-
 def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
     n = A.shape[0]
     M = np.zeros((n + 1, n + 1))
@@ -88,7 +76,7 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     phi = expm(A * dt)
     gamma = _zoh_input(A, B, dt)
     e5 = np.eye(5)[4]
-    q_unit = _van_loan_noise(A, e5, dt)
+    q_unit = van_loan_integral(A.T, np.outer(e5, e5), dt)
     road_int = (2 * math.pi * N0_PER_M) ** 2 * CONVENTIONS[convention] * GRADE_GQ_M3[opts.akf_q_grade]
     rows_H = [A[0], np.array([0, 0, 1.0, -1.0, 0]), A[1]]
     rows_D = [1.0 / vp.sprung_mass_kg, 0.0, -1.0 / vp.unsprung_mass_kg]
@@ -104,7 +92,6 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     r0 = r0 + np.outer(D, D) * force_var
     # initial covariance: the stationary one of the passive car on the nominal road
     model = linear_model(vp, GRADE_GQ_M3[opts.akf_q_grade], NOMINAL_SPEED_MPS, convention)
-    from hil.model import state_covariance
     p0 = state_covariance(model.A, model.G)
     return fp.AkfParams(phi=phi, gamma=gamma, q_unit=q_unit, road_intensity_per_mps=road_int,
                         H=H, D=D, r0=r0, r_floor=quant, forgetting=opts.akf_forgetting,

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_continuous_lyapunov
+from scipy.linalg import expm, solve_continuous_lyapunov
 
 from hil.config import VehicleParams
 from hil.road import DEFAULT_CUTOFF_N_PER_M, road_noise_gain
@@ -86,3 +86,17 @@ def passive_rms(model: LinearModel) -> np.ndarray:
     """Exact RMS of [BA (m/s^2), SWS (m), DTD (m)] of the passive car."""
     var, _ = output_covariance(model)
     return np.sqrt(var)
+
+
+def van_loan_integral(M: np.ndarray, Q: np.ndarray, dt: float) -> np.ndarray:
+    """W = integral_0^dt expm(M^T t) Q expm(M t) dt (Van Loan), so the integral of
+    zeta^T Q zeta along zeta' = M zeta is zeta0^T W zeta0. With M = A^T and Q = G G^T it is the
+    discrete process-noise covariance of x' = A x + G w over dt."""
+    n = M.shape[0]
+    big = np.zeros((2 * n, 2 * n))
+    big[:n, :n] = -M.T
+    big[:n, n:] = Q
+    big[n:, n:] = M
+    E = expm(big * dt)
+    W = E[n:, n:].T @ E[:n, n:]
+    return 0.5 * (W + W.T)

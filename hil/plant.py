@@ -35,7 +35,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from hil.config import VehicleConfig
-from hil.model import mechanics
+from hil.model import mechanics, van_loan_integral
 
 N_AUG = 10
 VS, VT, ZS, ZT, CUR, ZF, VOLT, ZFDOT, FB, FW = range(N_AUG)
@@ -55,18 +55,6 @@ def _sym(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Symmetric Q with zeta^T Q zeta = (a.zeta)(b.zeta)."""
     outer = np.outer(a, b)
     return 0.5 * (outer + outer.T)
-
-
-def _van_loan_integral(M: np.ndarray, Q: np.ndarray, dt: float) -> np.ndarray:
-    """W = integral_0^dt expm(M^T t) Q expm(M t) dt, so integral of zeta^T Q zeta = zeta0^T W zeta0."""
-    n = M.shape[0]
-    big = np.zeros((2 * n, 2 * n))
-    big[:n, :n] = -M.T
-    big[:n, n:] = Q
-    big[n:, n:] = M
-    E = expm(big * dt)
-    W = E[n:, n:].T @ E[:n, n:]
-    return 0.5 * (W + W.T)
 
 
 @dataclass
@@ -217,7 +205,7 @@ class QuarterCarPlant:
             "electromagnetic": self._K * _sym(e(CUR), vrel),
             "actuator_mech": g * self._K * _sym(e(CUR), vrel),
         }
-        flows = np.stack([_van_loan_integral(M, forms[name], self.dt).ravel() for name in FLOWS])
+        flows = np.stack([van_loan_integral(M, forms[name], self.dt).ravel() for name in FLOWS])
         return _Discretisation(expm(M * self.dt), flows)
 
     # -- state -----------------------------------------------------------------------------
