@@ -135,7 +135,7 @@ def grade_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.GradeParams:
         dtd1=th["dtd1_m"], ba1=th["ba1_mps2"], ba2=th["ba2_mps2"])
 
 
-def _vehicle_digest(cfg: VehicleConfig) -> str:
+def vehicle_digest(cfg: VehicleConfig) -> str:
     v = cfg.vehicle
     text = json.dumps([v.sprung_mass_kg, v.unsprung_mass_kg, v.spring_stiffness_n_per_m,
                        v.damping_n_s_per_m, v.tire_stiffness_n_per_m])
@@ -143,7 +143,7 @@ def _vehicle_digest(cfg: VehicleConfig) -> str:
 
 
 def default_gains_path(cfg: VehicleConfig) -> Path:
-    return GAINS_DIR / f"galqr_{_vehicle_digest(cfg)[:12]}.json"
+    return GAINS_DIR / f"galqr_{vehicle_digest(cfg)[:12]}.json"
 
 
 def load_gains(path: Path, cfg: VehicleConfig) -> np.ndarray:
@@ -157,7 +157,7 @@ def load_gains(path: Path, cfg: VehicleConfig) -> np.ndarray:
     if (not isinstance(K, list) or len(K) != 5
             or not all(isinstance(k, (int, float)) and math.isfinite(k) for k in K)):
         raise ConfigError(f"{path}: key 'K' must be a list of 5 finite numbers")
-    if data.get("vehicle_sha256") not in (None, _vehicle_digest(cfg)):
+    if data.get("vehicle_sha256") not in (None, vehicle_digest(cfg)):
         raise ConfigError(f"{path}: gains were tuned for another vehicle "
                           f"(vehicle_sha256 differs); re-run python -m tools.tune_ga_lqr")
     return np.array(K, dtype=float)
@@ -181,7 +181,7 @@ def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path
 
 def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
           gains_file: Path | None = None) -> fp.EcuParams:
-    from tools.linear import ecu_design
+    from tools.linear import safety_design
 
     cfg = cfg or default_vehicle()
     opts = opts or DesignOptions()
@@ -200,7 +200,7 @@ def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
                            ap.winding_inductance_h, ap.current_limit_a, ap.bus_voltage_v,
                            ap.storage_voltage_v)
     model = linear_model(vp, GRADE_GQ_M3["C"], NOMINAL_SPEED_MPS)
-    k_safety = ecu_design(model, "safety", opts.safety_bound).K
+    k_safety = safety_design(model, opts.safety_bound).K
     k_comp = comprehensive_gain(cfg, opts, gains_file)
     rng = np.random.default_rng(opts.bp_seed)
     force_limit = 0.95 * ap.current_limit_a * ap.force_constant_n_per_a * ap.screw_efficiency

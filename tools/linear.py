@@ -165,32 +165,22 @@ def _balanced(norm: Normalised) -> tuple[float, np.ndarray, np.ndarray, np.ndarr
     return -best.fun, mu, K, var
 
 
-def eq43_fitness(rms_ratios: np.ndarray) -> float:
-    """Paper Eq. (43): sum of RMS ratios to passive; +inf if Eq. (44) is violated."""
-    ratios = np.asarray(rms_ratios, dtype=float)
-    if np.any(ratios > 1.0):
-        return math.inf
-    return float(np.sum(ratios))
-
-
 def weights_from_log(z: np.ndarray) -> np.ndarray:
     """Normalised LQR weights (q1 = 1) from log10(q2/q1), log10(q3/q1)."""
     return np.array([1.0, 10.0 ** z[0], 10.0 ** z[1]])
 
 
-def _eq43_min(norm: Normalised, bound=1.0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum of Eq. (43) under (44) (each ratio <= bound) over the Pareto frontier, which
-    LQR weights trace. The objective (a sum of square roots) is not convex: grid, then local
+def _eq43_min(norm: Normalised) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Minimum of Eq. (43) under (44) (each ratio <= 1) over the Pareto frontier, which LQR
+    weights trace. The objective (a sum of square roots) is not convex: grid, then local
     refinement."""
-
-    bound = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
 
     def f(z: np.ndarray, penalty: bool = True) -> float:
         _, var = norm.lqr(weights_from_log(z))
         ratios = np.sqrt(var)
         if penalty:
-            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - bound, 0.0)))
-        return math.inf if np.any(ratios > bound) else float(np.sum(ratios))
+            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - 1.0, 0.0)))
+        return math.inf if np.any(ratios > 1.0) else float(np.sum(ratios))
 
     grid = np.linspace(-3.0, 5.0, 21)
     scores = sorted((f(np.array([a, b])), a, b) for a in grid for b in grid)
@@ -236,20 +226,6 @@ def physical_limits(model: LinearModel) -> dict[str, LimitResult]:
     return {"comfort": comfort, "safety": safety, "balanced": balanced, "eq43": eq43}
 
 
-def constrained_design(model: LinearModel, objective: str, bound=1.0) -> LimitResult:
-    """A design point inside the frontier, with a margin: ``objective`` is 'comfort' (min BA),
-    'safety' (min DTD) or 'eq43' (min Eq. (43)), the constrained ratios bounded by ``bound``
-    (a number, or one per output [BA, SWS, DTD]) instead of 1. The gain is in SI units."""
-    norm = Normalised.of(model)
-    if objective == "eq43":
-        val, q, K, var = _eq43_min(norm, bound)
-        return LimitResult(val, q, norm.physical_gain(K), np.sqrt(var))
-    index = {"comfort": 0, "safety": 2}[objective]
-    b = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
-    g, w, K, var = _dual_max(norm, index, tuple(b[i] for i in range(3) if i != index))
-    return LimitResult(math.sqrt(g), w, norm.physical_gain(K), np.sqrt(var))
-
-
 # -- designs for the ECU: blind to the unobservable common mode -----------------------------
 
 REL_T = np.array([[1.0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0], [0, 0, 1.0, -1.0, 0], [0, 0, 0, 1.0, -1.0]])
@@ -284,15 +260,12 @@ class RelativeFamily:
         return K5, np.sqrt(var / self.passive_var)
 
 
-def ecu_design(model: LinearModel, objective: str, bound=1.0) -> LimitResult:
-    """Safety-mode LQR for the ECU: min DTD with BA and SWS bounded (``bound``, a number or
-    one per output), designed on the relative model (blind to the common mode) by the
-    Lagrange dual, ratios computed exactly on the full model. (The comprehensive mode's
-    GA-LQR comes from ``tools.tune_ga_lqr`` over the same family.)"""
-    if objective != "safety":
-        raise ValueError(f"unknown design objective {objective!r}")
+def safety_design(model: LinearModel, bound: float = 1.0) -> LimitResult:
+    """Safety-mode LQR for the ECU: min DTD with BA and SWS <= ``bound`` x passive, designed
+    on the relative model (blind to the common mode) by the Lagrange dual, ratios computed
+    exactly on the full model. (The comprehensive mode's GA-LQR comes from
+    ``tools.tune_ga_lqr`` over the same family.)"""
     fam = RelativeFamily(model)
-    b = np.broadcast_to(np.asarray(bound, dtype=float), (3,))
-    _, w, _, _ = _dual_max(fam.rel, 2, (b[0], b[1]))
+    _, w, _, _ = _dual_max(fam.rel, 2, (bound, bound))
     K5, ratios = fam.evaluate(w)
     return LimitResult(float(ratios[2]), w, K5, ratios)

@@ -26,7 +26,7 @@ from deap import algorithms, base, creator, tools
 
 from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
 from hil.config import VehicleConfig
-from hil.ecu_params import DesignOptions, NOMINAL_SPEED_MPS, _vehicle_digest, default_gains_path
+from hil.ecu_params import DesignOptions, NOMINAL_SPEED_MPS, vehicle_digest, default_gains_path
 from hil.model import linear_model
 from hil.road import GRADE_GQ_M3
 from tools.linear import RelativeFamily
@@ -92,7 +92,7 @@ def tune(cfg: VehicleConfig, seed: int = 0, bound=None, population: int = POPULA
     return {
         "generator": "tools.tune_ga_lqr", "seed": seed, "population": population,
         "generations": generations, "evaluations": evaluations,
-        "vehicle": cfg.source, "vehicle_sha256": _vehicle_digest(cfg),
+        "vehicle": cfg.source, "vehicle_sha256": vehicle_digest(cfg),
         "bound": bound.tolist(), "q": q.tolist(), "K": K.tolist(),
         "fitness": float(np.sum(ratios)) if feasible else math.inf, "feasible": feasible,
         "ratios": {"ba": float(ratios[0]), "sws": float(ratios[1]), "dtd": float(ratios[2])},
@@ -109,7 +109,7 @@ def confirm_by_simulation(cfg: VehicleConfig, K: list, seconds: float, seed: int
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "gains.json"
-        path.write_text(json.dumps({"K": K, "vehicle_sha256": _vehicle_digest(cfg)}))
+        path.write_text(json.dumps({"K": K, "vehicle_sha256": vehicle_digest(cfg)}))
         rep, _ = sil.run(cfg, constant_route("D", NOMINAL_SPEED_MPS, seconds + sil.SETTLE_S),
                          "comprehensive", seed, gains_file=path)
     r = rep["segments"][0]["ratio"]
