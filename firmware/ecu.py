@@ -35,14 +35,16 @@ SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
 @dataclass(frozen=True)
 class Inputs:
     tick: int
-    body_accel: int          # ADC counts
-    wheel_accel: int
-    susp_defl: int
-    motor_current: int
-    speed: int
+    body_accel: int | None   # ADC counts (None: no valid sample this tick -> channel fault)
+    wheel_accel: int | None
+    susp_defl: int | None
+    motor_current: int | None
+    speed: int | None
     req_kind: int = 0        # latest driver request (REQ_*)
     req_mode: int = 0
     req_counter: int = 0
+    link_faults: int = 0     # frame-validity fault bits (firmware.safety.FAULT_*) of the
+    #                          receive path; a channel whose frame was invalid arrives as None
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     raw = {"body_accel": inp.body_accel, "wheel_accel": inp.wheel_accel,
            "susp_defl": inp.susp_defl, "motor_current": inp.motor_current, "speed": inp.speed}
     v, faults = adc.sample(P.adc, st.adc, raw)
+    faults |= inp.link_faults
     ba, wa, defl, i_meas, speed = (v["body_accel"], v["wheel_accel"], v["susp_defl"],
                                    v["motor_current"], v["speed"])
     # 2. AKF; the force acting now, from the measured current (direction picks the efficiency)

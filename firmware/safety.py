@@ -60,9 +60,10 @@ class FrameSpec:
 
 
 def checksum_of(spec: FrameSpec, data: bytes | bytearray) -> int:
-    body = (spec.msg_id & 0xFFFF).to_bytes(2, "little") + bytes(
-        b for i, b in enumerate(data) if i != spec.checksum_byte)
-    return crc8(body)
+    data = bytes(data)
+    cb = spec.checksum_byte
+    body = data if cb is None else data[:cb] + data[cb + 1:]
+    return crc8((spec.msg_id & 0xFFFF).to_bytes(2, "little") + body)
 
 
 def counter_of(spec: FrameSpec, data: bytes | bytearray) -> int:

@@ -1,5 +1,7 @@
 """``python -m hil``: the bench's command line.
 
+    python -m hil run --route full_road_section --mode auto --seed 1 --pace lockstep --out DIR
+    python -m hil ecu|plant|app -i remote -c ws://127.0.0.1:PORT/ ...   (one node)
     python -m hil sim --route full_road_section --mode auto --seed 1 [--controller C] [--json]
     python -m hil drive --route full_road_section --seed 1 [--out DIR] [--json]
     python -m hil routes
@@ -10,7 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hil.cli import add_json_argument, add_vehicle_argument, route_or_exit, seed_arg, vehicle_or_exit
+from hil.cli import (add_json_argument, add_vehicle_argument, positive_float, route_or_exit,
+                     seed_arg, vehicle_or_exit)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,22 +37,34 @@ def main(argv: list[str] | None = None) -> int:
                                    "with a passive twin on the same road")
     p.add_argument("--route", default="full_road_section",
                    help="route TOML file or shipped route name (default: full_road_section)")
-    p.add_argument("--mode", default="auto",
-                   choices=("auto", "passive", "comfort", "safety", "comprehensive", "regen"),
+    p.add_argument("--mode", default="auto", choices=MODE_CHOICES,
                    help="auto: the emulated driver accepts recommendations after a reaction "
                         "delay; otherwise the driver chooses this mode and refuses the rest")
-    p.add_argument("--controller", choices=("pid", "bppid", "lqr", "galqr", "skyhook", "regen"),
+    p.add_argument("--controller", choices=CONTROLLER_CHOICES,
                    help="override the controller of the mode (of comfort mode for auto)")
     p.add_argument("--seed", type=seed_arg, default=1)
     p.add_argument("--gains", metavar="FILE", help="GA-LQR gains file (default: the shipped "
                    "one for this vehicle, or tuned on the fly)")
-    p.add_argument("--out", metavar="DIR", help="write DIR/report.json")
+    p.add_argument("--duration", type=positive_float, metavar="S",
+                   help="stop after S simulated seconds (default: the whole route)")
+    p.add_argument("--out", metavar="DIR", help="write DIR/report.json, report.md, figures "
+                   "and DIR/bus.log (every frame, candump -L)")
     add_vehicle_argument(p)
     add_json_argument(p)
+    _driver_arguments(p)
+    _node_parsers(sub)
     args = parser.parse_args(argv)
 
     if args.command == "sim":
         return _sim(args)
+    if args.command == "run":
+        from hil import supervisor
+
+        return supervisor.run(args)
+    if args.command in ("ecu", "plant", "app"):
+        from hil import procs
+
+        return procs.main(args.command, args)
 
     if args.command == "routes":
         from hil.road import load_route, shipped_routes
@@ -70,24 +85,108 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+MODE_CHOICES = ("auto", "passive", "comfort", "safety", "comprehensive", "regen")
+CONTROLLER_CHOICES = ("pid", "bppid", "lqr", "galqr", "skyhook", "regen")
+
+
+def _driver_arguments(p) -> None:
+    p.add_argument("--driver", choices=("auto", "fixed", "refuse", "script"),
+                   help="driver policy (default: auto for --mode auto, else fixed: choose the "
+                        "mode, refuse every recommendation)")
+    p.add_argument("--script", metavar="FILE", help="driver script TOML ([[request]] tables "
+                   "with t_s, kind = accept|refuse|choose, mode)")
+
+
+def _node_parsers(sub) -> None:
+    from can.cli import add_bus_arguments
+
+    def common(p, pace=True):
+        add_bus_arguments(p)
+        p.add_argument("--out", metavar="DIR", help="write DIR/<node>.json and .npz at the end "
+                       "(default: print the summary)")
+        add_vehicle_argument(p)
+        if pace:
+            p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep")
+
+    p = sub.add_parser("run", help="the bench: hub, ECU, plant and driver app as processes on "
+                                   "a CAN bus; bus.log, report.json/.md and figures in --out")
+    p.add_argument("--route", default="full_road_section")
+    p.add_argument("--mode", default="auto", choices=MODE_CHOICES)
+    p.add_argument("--controller", choices=CONTROLLER_CHOICES)
+    p.add_argument("--seed", type=seed_arg, default=1)
+    p.add_argument("--gains", metavar="FILE")
+    p.add_argument("--duration", type=positive_float, metavar="S",
+                   help="stop after S simulated seconds (default: the whole route)")
+    _driver_arguments(p)
+    common(p)
+    p.set_defaults(out="out/run")
+    add_json_argument(p)
+
+    p = sub.add_parser("plant", help="the plant simulator node (owns simulated time; start it "
+                                     "after the ECU and the app)")
+    p.add_argument("--route", default="full_road_section")
+    p.add_argument("--seed", type=seed_arg, default=1)
+    p.add_argument("--duration", type=positive_float, metavar="S")
+    common(p)
+
+    p = sub.add_parser("ecu", help="the ECU node (firmware behind its CAN path)")
+    p.add_argument("--mode", default="auto", choices=MODE_CHOICES,
+                   help="only used with --controller (the mode whose controller it replaces)")
+    p.add_argument("--controller", choices=CONTROLLER_CHOICES)
+    p.add_argument("--gains", metavar="FILE")
+    common(p)
+
+    p = sub.add_parser("app", help="the driver-app emulator node")
+    p.add_argument("--policy", choices=("auto", "fixed", "refuse", "script", "interactive"),
+                   help="default: auto for --mode auto, else fixed")
+    p.add_argument("--mode", default="auto", choices=MODE_CHOICES,
+                   help="the mode a fixed driver chooses")
+    p.add_argument("--script", metavar="FILE")
+    p.add_argument("--reaction-s", type=positive_float, default=1.0,
+                   help="auto policy: accept a recommendation shown this long (simulated s)")
+    p.add_argument("--quiet", action="store_true", help="do not print the requests sent")
+    common(p)
+
+
 def _sim(args) -> int:
     from pathlib import Path
 
     from hil import sil
     from hil.cli import fail, progress_bar
-    from hil.config import ConfigError
+    from hil.buslog import BusLogFile
+    from hil.config import ConfigError, load_driver_script
+    from hil.figures import write_outputs
+    from hil.nodes import LockstepClock
     from hil.report import finish, render_sil
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route)
+    if args.driver == "script" and not args.script:
+        fail("sim: --driver script needs --script FILE")
+    log = clock = None
     try:
+        script = load_driver_script(args.script) if args.script else None
+        if args.out:
+            log = BusLogFile(Path(args.out) / "bus.log")
+            clock = LockstepClock(cfg.sim.plant_dt_s)
         with progress_bar(f"SIL {route.name} ({args.mode})", not args.json) as progress:
-            report, _ = sil.run(cfg, route, args.mode, args.seed, controller=args.controller,
-                                gains_file=Path(args.gains) if args.gains else None,
-                                progress=progress)
+            report, trace = sil.run(
+                cfg, route, args.mode, args.seed, controller=args.controller,
+                gains_file=Path(args.gains) if args.gains else None, policy=args.driver,
+                script=script, progress=progress, duration_s=args.duration,
+                on_frame=(lambda fid, data: log.write(fid, data, clock.stamp(fid)))
+                if log else None)
     except ConfigError as exc:
         fail(str(exc))
-    finish(report, args.out, "report.json", args.json, render_sil)
+    finally:
+        if log is not None:
+            log.close()
+    if args.out:
+        report["bench"] = {"harness": "sil", "frames_logged": log.count}
+        write_outputs(Path(args.out), report, trace)
+    finish(report, None, "report.json", args.json, render_sil)
+    if args.out and not args.json:
+        print(f"report: {Path(args.out) / 'report.md'} (and report.json, bus.log, figures)")
     return 0
 
 

@@ -10,6 +10,7 @@ a remote hub is bound to 127.0.0.1 and clients may only connect to a loopback UR
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -70,12 +71,37 @@ class BusSpec:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
-                return can.Bus(interface=self.interface, channel=self.channel)
+                bus = can.Bus(interface=self.interface, channel=self.channel)
+                if self.interface == "remote":
+                    _no_delay(bus)
+                return bus
             except Exception as exc:  # noqa: BLE001 - every backend raises its own errors
                 if time.monotonic() >= deadline:
                     raise BusError(f"cannot reach the bus {self.interface}:{self.channel}: "
                                    f"{type(exc).__name__}: {exc}") from None
                 time.sleep(0.05)
+
+
+def die_with_parent() -> None:
+    """Child side of a fork (Linux): get SIGTERM when the parent dies, so a bench process
+    never outlives the supervisor that started it."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _no_delay(bus: can.BusABC) -> None:
+    """Small frames must leave at once: without TCP_NODELAY the client's second frame of a
+    tick waits for the ACK of the first (Nagle + delayed ACK, up to 40 ms)."""
+    sock = getattr(bus, "socket", None)
+    if sock is not None:
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        except OSError:
+            pass
 
 
 class Hub:
@@ -94,7 +120,8 @@ class Hub:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "can_remote", "-i", "virtual", "-c", "hub", "-H", LOOPBACK,
              "-p", str(self.port), "-v"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            start_new_session=True, preexec_fn=die_with_parent)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:

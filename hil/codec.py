@@ -65,25 +65,58 @@ class Codec:
                 msg_id=m.frame_id, dlc=m.length,
                 counter_bit=counter.start if counter is not None else None,
                 checksum_byte=checksum.start // 8 if checksum is not None else None)
+        # bit layouts for the fast path (all signals little-endian, as in our DBC); a DBC
+        # with big-endian signals goes through cantools' own packer
+        self._layouts: dict[int, Optional[tuple]] = {}
+        self._by_name = {m.name: m for m in self.db.messages}
+        self._by_id = {m.frame_id: m for m in self.db.messages}
+        for m in self.db.messages:
+            if all(sig.byte_order == "little_endian" for sig in m.signals):
+                self._layouts[m.frame_id] = tuple(
+                    (sig.name, sig.start, sig.length, sig.is_signed, *raw_range(sig),
+                     sig.scale, sig.offset) for sig in m.signals)
+            else:
+                self._layouts[m.frame_id] = None
 
     def message(self, name: str):
-        return self.db.get_message_by_name(name)
+        return self._by_name[name]
+
+    def cycle_ms(self, name: str) -> int:
+        """The message's GenMsgCycleTime from the DBC (0: not cyclic)."""
+        return int(self.message(name).cycle_time or 0)
 
     def encode(self, name: str, values: Mapping[str, float], counter: int = 0) -> bytes:
+        """Encode physical values (round half away from zero, saturate), seal COUNTER and
+        CHECKSUM."""
         m = self.message(name)
-        raw = {}
-        for sig in m.signals:
-            if sig.name in ("COUNTER", "CHECKSUM"):
-                raw[sig.name] = 0
-            else:
-                raw[sig.name] = to_raw(sig, values.get(sig.name, 0.0))
-        data = m.encode(raw, scaling=False, strict=False)
+        raw = {sig.name: to_raw(sig, values.get(sig.name, 0.0)) for sig in m.signals
+               if sig.name not in ("COUNTER", "CHECKSUM")}
+        return self.encode_raw(name, raw, counter)
+
+    def encode_raw(self, name: str, raw_values: Mapping[str, int], counter: int = 0) -> bytes:
+        """Encode raw (unscaled) integers, saturating at each signal's raw range."""
+        m = self.message(name)
+        layout = self._layouts[m.frame_id]
+        if layout is None:
+            raw = {}
+            for sig in m.signals:
+                lo, hi = raw_range(sig)
+                v = 0 if sig.name in ("COUNTER", "CHECKSUM") else int(raw_values.get(sig.name, 0))
+                raw[sig.name] = min(hi, max(lo, v))
+            data = m.encode(raw, scaling=False, strict=False)
+        else:
+            word = 0
+            for sig, start, length, _signed, lo, hi, _s, _o in layout:
+                v = int(raw_values.get(sig, 0))
+                v = hi if v > hi else lo if v < lo else v
+                word |= (v & ((1 << length) - 1)) << start
+            data = word.to_bytes(m.length, "little")
         return safety.seal(self.specs[m.frame_id], data, counter)
 
     def decode(self, frame_id: int, data: bytes, state: Optional[safety.RxState] = None,
-               tick: int = 0) -> Decoded:
+               tick: int = 0, scaling: bool = True) -> Decoded:
         """Decode with validity checks. Unknown IDs, wrong DLC and bad CHECKSUM give ok=False
-        and fault bits, never an exception."""
+        and fault bits, never an exception. ``scaling=False`` gives raw integers."""
         spec = self.specs.get(frame_id)
         if spec is None:
             return Decoded("", {}, False, safety.FAULT_UNKNOWN_ID)
@@ -91,11 +124,21 @@ class Codec:
         if state is None:
             st.last_counter = -1   # a one-off decode does not judge the counter
         ok = safety.check_frame(spec, st, data, tick)
-        m = self.db.get_message_by_frame_id(frame_id)
+        m = self._by_id[frame_id]
         if not ok:
             return Decoded(m.name, {}, False, st.faults)
+        layout = self._layouts[frame_id]
+        if layout is not None:
+            word = int.from_bytes(bytes(data), "little")
+            values = {}
+            for sig, start, length, signed, _lo, _hi, scale, offset in layout:
+                v = (word >> start) & ((1 << length) - 1)
+                if signed and v >> (length - 1):
+                    v -= 1 << length
+                values[sig] = v * scale + offset if scaling else v
+            return Decoded(m.name, values, True, 0)
         try:
-            values = m.decode(bytes(data), decode_choices=False, scaling=True)
+            values = m.decode(bytes(data), decode_choices=False, scaling=scaling)
         except Exception:  # noqa: BLE001 - a frame that passed DLC/CRC but does not unpack
             return Decoded(m.name, {}, False, safety.FAULT_DLC)
         return Decoded(m.name, dict(values), True, 0)

@@ -252,3 +252,43 @@ def load_vehicle(path: str | Path | None) -> VehicleConfig:
         return default_vehicle()
     path = Path(path)
     return _parse(read_toml(path, "vehicle"), path, default_vehicle())
+
+
+REQUEST_KINDS = ("accept", "refuse", "choose")
+MODE_BY_NAME = {"passive": 0, "energy": 1, "regen": 1, "comfort": 2, "safety": 3,
+                "comprehensive": 4}
+
+
+def load_driver_script(path: str | Path) -> list[tuple[float, str, int | None]]:
+    """A driver script: ``[[request]]`` tables with ``t_s`` (simulated seconds), ``kind``
+    (accept | refuse | choose) and ``mode`` (needed for choose; for accept it must be the mode
+    recommended then, and may be left out). Returns [(t_s, kind, mode or None), ...]."""
+    path = Path(path)
+    data = read_toml(path, "driver script")
+    extra = set(data) - {"request", "description"}
+    if extra:
+        raise ConfigError(f"{path}: unknown key '{sorted(extra)[0]}' (expected [[request]] tables)")
+    reqs = data.get("request")
+    if not isinstance(reqs, list) or not reqs or not all(isinstance(r, dict) for r in reqs):
+        raise ConfigError(f"{path}: needs at least one [[request]] table")
+    out = []
+    for i, r in enumerate(reqs):
+        key = f"request[{i}]"
+        extra = set(r) - {"t_s", "kind", "mode"}
+        if extra:
+            raise ConfigError(f"{path}: unknown key '{key}.{sorted(extra)[0]}'")
+        if "t_s" not in r:
+            raise ConfigError(f"{path}: key '{key}.t_s' is missing")
+        t = _number(path, f"{key}.t_s", r["t_s"], positive=True, allow_zero=True)
+        kind = r.get("kind")
+        if kind not in REQUEST_KINDS:
+            raise ConfigError(f"{path}: key '{key}.kind' must be one of "
+                              f"{', '.join(REQUEST_KINDS)}, got {kind!r}")
+        mode = r.get("mode")
+        if mode is None and kind == "choose":
+            raise ConfigError(f"{path}: key '{key}.mode' is needed for kind 'choose'")
+        if mode is not None and mode not in MODE_BY_NAME:
+            raise ConfigError(f"{path}: key '{key}.mode' must be one of "
+                              f"{', '.join(MODE_BY_NAME)}, got {mode!r}")
+        out.append((t, kind, None if mode is None else MODE_BY_NAME[mode]))
+    return sorted(out, key=lambda e: e[0])

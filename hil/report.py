@@ -94,7 +94,7 @@ def render_sil(report: dict) -> None:
 
     ctrl = f", controller {report['controller']}" if report.get("controller") else ""
     table = Table(box=box.SIMPLE_HEAD,
-                  title=f"SIL, route '{report['route']}', mode {report['mode']}{ctrl}, "
+                  title=f"{report.get('bench', {}).get('harness', 'sil').upper()}, route '{report['route']}', mode {report['mode']}{ctrl}, "
                         f"seed {report['seed']}",
                   caption=f"ratios to the passive twin (RMS after {report.get('settle_s', 3):g} s "
                           f"per segment); grade accuracy {report['grade_accuracy']:.3f}; "

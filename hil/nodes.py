@@ -1,0 +1,505 @@
+"""The bench's three CAN nodes as frame-driven state machines: no sockets, no clock.
+
+``PlantNode`` (the simulator: road, quarter car, sensors, passive twin), ``EcuNode`` (the
+firmware behind its receive/transmit path) and ``AppNode`` (the driver-app emulator) only
+exchange ``(frame_id, payload)`` pairs encoded with the DBC. The same objects run in one
+process (``hil sim``, :func:`run_in_process`) and as three processes on a CAN bus
+(``hil run``, ``hil.procs``), so the two harnesses compute the same thing by construction.
+
+Lockstep protocol (deterministic, as fast as the bus allows), per tick k:
+  1. the plant samples its sensors and sends, in this order, VEHICLE_SPEED and SIM_TRUTH
+     (every 10 ms), ENERGY_STATUS (every 100 ms), PLANT_SENSORS (every tick);
+  2. on PLANT_SENSORS the ECU steps once and sends ECU_STATUS and ECU_ESTIMATES (every 10 ms)
+     and MODE_RECOMMEND (every 100 ms and on change);
+  3. the app answers every MODE_RECOMMEND with exactly one DRIVER_REQUEST (a new request or
+     the heartbeat repeating the last), which the ECU applies from tick k+1;
+  4. the ECU sends ACTUATOR_CMD last: at once, or after that answer when it sent a
+     MODE_RECOMMEND; the plant steps when the command is in.
+Every frame is thus caused by the one before it, so the order on the bus is fixed and the
+log of a lockstep run is the same bytes as ``hil sim``'s. Periods come from the DBC's
+GenMsgCycleTime. In ``realtime`` pacing nobody waits: the ECU sends its command at once, the
+plant steps on its 1 kHz clock with the latest valid command.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import struct
+from collections import Counter, deque
+from dataclasses import replace
+from typing import Callable, Iterable, Optional
+
+import numpy as np
+
+from firmware import ecu, safety
+from firmware import params as fp
+from hil.codec import Codec
+from hil.config import VehicleConfig
+from hil.drive import road_at_ticks
+from hil.plant import QuarterCarPlant
+from hil.road import GRADES, Route, drive_timeline, generate_profile
+from hil.sensors import SensorSuite
+
+Frame = tuple[int, bytes]
+
+# message IDs (from the DBC, resolved once)
+_DB = Codec()
+ID = {m.name: m.frame_id for m in _DB.db.messages}
+OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
+UNKNOWN_GRADE_ON_BUS = 7
+
+_IN = struct.Struct("<q5i3iI")
+_OUT = struct.Struct("<i2B4BIBBB7i")
+
+
+def period_ticks(codec: Codec, name: str, dt_s: float) -> int:
+    return max(1, int(round(codec.cycle_ms(name) * 1e-3 / dt_s)))
+
+
+def true_grade_index(grade: str) -> int:
+    return min(3, GRADES.index(grade))
+
+
+class Tx:
+    """A node's transmit side: one COUNTER per message, frames sent counted per message."""
+
+    def __init__(self, codec: Codec):
+        self.codec = codec
+        self.counters: dict[str, int] = {}
+        self.sent: Counter = Counter()
+
+    def frame(self, name: str, raw: dict) -> Frame:
+        c = self.counters.get(name, 0)
+        self.counters[name] = (c + 1) & 0xF
+        self.sent[name] += 1
+        return ID[name], self.codec.encode_raw(name, raw, c)
+
+    def frame_phys(self, name: str, values: dict) -> Frame:
+        c = self.counters.get(name, 0)
+        self.counters[name] = (c + 1) & 0xF
+        self.sent[name] += 1
+        return ID[name], self.codec.encode(name, values, c)
+
+
+class PlantNode:
+    """The corner on the road: owns simulated time. Steps once per command (lockstep) or per
+    clock tick (realtime). A command older than ``cmd_timeout_ticks`` is not applied: the
+    bridge is opened and the corner falls back to passive behaviour."""
+
+    name = "PLANT"
+
+    def __init__(self, cfg: VehicleConfig, route: Route, seed: int, codec: Codec, *,
+                 noise_step: Optional[tuple[float, float]] = None, cmd_timeout_ticks: int = 3):
+        self.cfg, self.route, self.seed, self.codec = cfg, route, seed, codec
+        self.dt = dt = cfg.sim.plant_dt_s
+        self.timeline = drive_timeline(route, dt)
+        self.zf = road_at_ticks(generate_profile(route, seed), self.timeline)
+        self.n = len(self.timeline)
+        self.true_grade = np.array([true_grade_index(s.grade)
+                                    for s in route.segments])[self.timeline.segment]
+        self.sensors = SensorSuite(cfg.sensors, np.random.default_rng([seed, 0x5E45]))
+        self.active = QuarterCarPlant(cfg, actuator=True, ledger=True)
+        self.twin = QuarterCarPlant(cfg, actuator=False)
+        self.active.reset(self.zf[0])
+        self.twin.reset(self.zf[0])
+        self.noise_step = noise_step
+        self.cmd_timeout_ticks = cmd_timeout_ticks
+        self.tx = Tx(codec)
+        self.p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
+        self.p_truth = period_ticks(codec, "SIM_TRUTH", dt)
+        self.p_energy = period_ticks(codec, "ENERGY_STATUS", dt)
+        self.cmd_rx = safety.RxState()
+        self.k = 0
+        self.cmd = (0, False, False)        # duty Q15, regen, enable
+        self.cmd_tick = -1                  # tick of the last valid command
+        self.cmd_fresh = False              # a command arrived since the last step
+        self.bad_cmd_frames = 0
+        self.missed_cmds = 0                # steps without a fresh command
+        self.fallback_ticks = 0             # steps in the passive fallback
+        names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored",
+                 "drawn", "duty")
+        self.arrays = {k: np.zeros(self.n) for k in names}
+
+    @property
+    def done(self) -> bool:
+        return self.k >= self.n
+
+    def emit(self) -> list[Frame]:
+        """Sample the sensors and return the frames of tick k (PLANT_SENSORS last)."""
+        k, a = self.k, self.active
+        if self.noise_step is not None and k * self.dt >= self.noise_step[0]:
+            self.sensors.noise_gain[:] = self.noise_step[1]
+        ba, wa = a.accelerations()
+        r = self.sensors.sample(ba, wa, a.susp_defl_m, a.current_a, self.timeline.speed_mps[k])
+        out = []
+        if k % self.p_speed == 0:
+            out.append(self.tx.frame("VEHICLE_SPEED", {"SPEED": r.speed}))
+        if k % self.p_truth == 0:
+            out.append(self.tx.frame_phys("SIM_TRUTH", {
+                "TRUE_ROAD": self.zf[k], "TRUE_DTD": a.x[3] - a.zf, "TRUE_SWS": a.x[2] - a.x[3],
+                "TRUE_GRADE": int(self.true_grade[k]),
+                "SEGMENT": int(self.timeline.segment[k])}))
+        if k % self.p_energy == 0:
+            out.append(self.tx.frame_phys("ENERGY_STATUS", {
+                "STORED_ENERGY": a.ledger.stored_j, "SUPPLY_ENERGY": a.ledger.supply_drawn_j}))
+        out.append(self.tx.frame("PLANT_SENSORS", {
+            "BODY_ACCEL_RAW": r.body_accel, "WHEEL_ACCEL_RAW": r.wheel_accel,
+            "SUSP_DEFL_RAW": r.susp_defl, "MOTOR_CURRENT_RAW": r.motor_current}))
+        return out
+
+    def on_frame(self, fid: int, data: bytes) -> list[Frame]:
+        if fid == ID["ACTUATOR_CMD"]:
+            self.cmd_fresh = True
+            d = self.codec.decode(fid, data, self.cmd_rx, self.k, scaling=False)
+            if d.ok:
+                s = d.signals
+                self.cmd = (int(s["DUTY"]), bool(s["REGEN"]), bool(s["ENABLE"]))
+                self.cmd_tick = self.k
+            else:
+                self.bad_cmd_frames += 1
+        return []
+
+    def ready(self) -> bool:
+        """Lockstep: the ECU's command for this tick is in."""
+        return self.cmd_fresh
+
+    def step(self) -> None:
+        k, a, t = self.k, self.active, self.twin
+        if not self.cmd_fresh:
+            self.missed_cmds += 1
+        duty, regen, enable = self.cmd
+        if self.cmd_tick < 0 or k - self.cmd_tick > self.cmd_timeout_ticks:
+            duty, regen, enable = 0, False, False
+            self.fallback_ticks += 1
+        a.step(self.zf[k + 1], duty / 32768.0, regen, enable)
+        t.step(self.zf[k + 1])
+        r = self.arrays
+        r["ba"][k], _ = a.accelerations()
+        r["sws"][k] = a.x[2] - a.x[3]
+        r["dtd"][k] = a.x[3] - a.zf
+        r["force"][k] = a.actuator_force_n()
+        r["p_ba"][k], _ = t.accelerations()
+        r["p_sws"][k] = t.x[2] - t.x[3]
+        r["p_dtd"][k] = t.x[3] - t.zf
+        r["p_vrel"][k] = t.x[0] - t.x[1]
+        r["stored"][k] = a.ledger.stored_j
+        r["drawn"][k] = a.ledger.supply_drawn_j
+        r["duty"][k] = duty / 32768.0 if enable else 0.0
+        self.k += 1
+        self.cmd_fresh = False
+
+    def summary(self) -> dict:
+        return {"node": "plant", "ticks": self.k, "frames_sent": dict(self.tx.sent),
+                "energy": self.active.ledger.as_dict(), "bad_cmd_frames": self.bad_cmd_frames,
+                "missed_cmds": self.missed_cmds, "fallback_ticks": self.fallback_ticks}
+
+    def trace(self) -> dict:
+        k = self.k
+        out = {name: v[:k] for name, v in self.arrays.items()}
+        out.update(zf=self.zf[1:k + 1], segment=self.timeline.segment[:k],
+                   true_grade=self.true_grade[:k], speed=self.timeline.speed_mps[:k])
+        return out
+
+
+class EcuNode:
+    """The firmware behind its CAN receive and transmit path. Frame validity is
+    ``firmware.safety``: an invalid PLANT_SENSORS frame feeds no counts (the ADC marks the
+    channels faulty, the ECU goes fail-safe), VEHICLE_SPEED times out after 3 periods, an
+    invalid DRIVER_REQUEST is ignored; every frame fault is reported in the fault word."""
+
+    name = "ECU"
+
+    def __init__(self, params: fp.EcuParams, codec: Codec, *, lockstep: bool = True):
+        self.params, self.codec, self.lockstep = params, codec, lockstep
+        dt = params.dt_s
+        self.state = ecu.init(params)
+        self.tx = Tx(codec)
+        self.p_status = period_ticks(codec, "ECU_STATUS", dt)
+        self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
+        p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
+        self.spec_speed = replace(codec.specs[ID["VEHICLE_SPEED"]], timeout_ticks=3 * p_speed)
+        self.rx = {ID[n]: safety.RxState()
+                   for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST")}
+        self.listen = {ID[n] for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST")}
+        self.ignore = set(ID.values()) - self.listen   # known frames of others (and SIM_TRUTH)
+        self.k = 0
+        self.pending: deque = deque()       # sensor frames not yet processed
+        self.speed_raw: Optional[int] = None
+        self.req = (fp.REQ_NONE, 0, 0)
+        self.awaiting = 0                   # MODE_RECOMMEND sent, answer not yet received
+        self.held_cmd: Optional[Frame] = None   # lockstep: ACTUATOR_CMD waiting for it
+        self.link_faults = 0
+        self.frame_faults: Counter = Counter()
+        self.last_rec = None
+        self.sha = hashlib.sha256()
+        self.cols = {k: [] for k in ("road_est", "dtd_est", "force_cmd", "grade_est", "mode",
+                                     "recommended", "faults")}
+
+    def _note(self, d, name: str) -> None:
+        self.link_faults |= d.faults
+        for bit, label in ((safety.FAULT_DLC, "dlc"), (safety.FAULT_CHECKSUM, "checksum"),
+                           (safety.FAULT_COUNTER, "counter"),
+                           (safety.FAULT_UNKNOWN_ID, "unknown_id")):
+            if d.faults & bit:
+                self.frame_faults[f"{name}:{label}"] += 1
+
+    def on_frame(self, fid: int, data: bytes) -> list[Frame]:
+        if fid in self.ignore:
+            return []
+        rx = self.rx.get(fid)
+        d = self.codec.decode(fid, data, rx, self.k, scaling=False)
+        if fid == ID["PLANT_SENSORS"]:
+            self.pending.append(d.signals if d.ok else None)
+            if not d.ok:
+                self._note(d, "PLANT_SENSORS")
+        elif fid == ID["VEHICLE_SPEED"]:
+            if d.ok:
+                self.speed_raw = int(d.signals["SPEED"])
+            else:
+                self._note(d, "VEHICLE_SPEED")
+        elif fid == ID["DRIVER_REQUEST"]:
+            self.awaiting = max(0, self.awaiting - 1)
+            if d.ok:
+                s = d.signals
+                self.req = (int(s["REQ_KIND"]), int(s["REQ_MODE"]), int(s["REQ_ID"]))
+            else:
+                self._note(d, "DRIVER_REQUEST")
+            if self.held_cmd is not None and not self.awaiting:
+                cmd, self.held_cmd = self.held_cmd, None
+                return [cmd]
+        else:
+            self._note(d, f"0x{fid:X}")
+        return []
+
+    def ready(self) -> bool:
+        return bool(self.pending) and self.held_cmd is None
+
+    def tick(self) -> list[Frame]:
+        k = self.k
+        s = self.pending.popleft()
+        speed = self.speed_raw
+        if not safety.check_timeout(self.spec_speed, self.rx[ID["VEHICLE_SPEED"]], k):
+            self.link_faults |= safety.FAULT_TIMEOUT
+            speed = None
+        elif not self.rx[ID["VEHICLE_SPEED"]].valid:
+            speed = None
+        counts = ((s["BODY_ACCEL_RAW"], s["WHEEL_ACCEL_RAW"], s["SUSP_DEFL_RAW"],
+                   s["MOTOR_CURRENT_RAW"]) if s is not None else (None,) * 4)
+        counts = tuple(None if c is None else int(c) for c in counts)
+        kind, rmode, rid = self.req
+        inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, self.link_faults)
+        self.state, out = ecu.step(self.state, inp)
+        self.sha.update(_IN.pack(k, *(-1 if c is None else c for c in counts),
+                                 -1 if speed is None else speed, kind, rmode, rid,
+                                 self.link_faults))
+        self.sha.update(_OUT.pack(out.duty_q15, out.regen, out.enable, out.recommended_mode,
+                                  out.active_mode, out.grade, out.reason, out.faults, out.events,
+                                  out.override, 0, out.force_cmd_n, out.road_est_um,
+                                  out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
+                                  out.dtd_rms_um, 0))
+        frames = []
+        grade = UNKNOWN_GRADE_ON_BUS if out.grade == fp.GRADE_UNKNOWN else out.grade
+        if k % self.p_status == 0:
+            frames.append(self.tx.frame("ECU_STATUS", {
+                "ACTIVE_MODE": out.active_mode, "ESTIMATED_GRADE": grade, "REASON": out.reason,
+                "FAULTS": out.faults, "BA_RMS": out.ba_rms_mmps2,
+                "DTD_RMS": (out.dtd_rms_um + 5) // 10}))
+            frames.append(self.tx.frame("ECU_ESTIMATES", {
+                "ROAD_EST": _div_half_away(out.road_est_um, 10), "DTD_EST": out.dtd_est_um,
+                "GQ_LOG": out.gq_est_log_c, "FORCE_CMD": out.force_cmd_n}))
+        rec = (out.recommended_mode, out.active_mode, out.reason, out.override)
+        if k % self.p_rec == 0 or rec != self.last_rec:
+            self.last_rec = rec
+            self.awaiting += 1
+            frames.append(self.tx.frame("MODE_RECOMMEND", {
+                "RECOMMENDED_MODE": out.recommended_mode, "ESTIMATED_GRADE": grade,
+                "ACTIVE_MODE": out.active_mode, "REASON": out.reason,
+                "OVERRIDE": int(out.override)}))
+        cmd = self.tx.frame("ACTUATOR_CMD", {
+            "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable)})
+        if self.lockstep and self.awaiting:
+            self.held_cmd = cmd
+        else:
+            self.awaiting = 0
+            frames.append(cmd)
+        c = self.cols
+        c["road_est"].append(out.road_est_um * 1e-6)
+        c["dtd_est"].append(out.dtd_est_um * 1e-6)
+        c["force_cmd"].append(out.force_cmd_n)
+        c["grade_est"].append(out.grade)
+        c["mode"].append(out.active_mode)
+        c["recommended"].append(out.recommended_mode)
+        c["faults"].append(out.faults)
+        self.k += 1
+        self.link_faults = 0
+        return frames
+
+    def summary(self) -> dict:
+        return {"node": "ecu", "ticks": self.k, "frames_sent": dict(self.tx.sent),
+                "trace_sha256": self.sha.hexdigest(),
+                "akf_r_guard_hits": self.state.akf.guard_hits,
+                "frame_faults": dict(self.frame_faults)}
+
+    def trace(self) -> dict:
+        c = self.cols
+        return {"road_est": np.array(c["road_est"]), "dtd_est": np.array(c["dtd_est"]),
+                "force_cmd": np.array(c["force_cmd"], dtype=float),
+                "grade_est": np.array(c["grade_est"], dtype=np.int16),
+                "mode": np.array(c["mode"], dtype=np.int8),
+                "recommended": np.array(c["recommended"], dtype=np.int8),
+                "faults": np.array(c["faults"], dtype=np.int32)}
+
+
+def _div_half_away(a: int, b: int) -> int:
+    q = (abs(a) + b // 2) // b
+    return q if a >= 0 else -q
+
+
+REQ_KINDS = {"none": fp.REQ_NONE, "accept": fp.REQ_ACCEPT, "refuse": fp.REQ_REFUSE,
+             "choose": fp.REQ_CHOOSE}
+POLICIES = ("auto", "fixed", "refuse", "script", "interactive")
+
+
+class AppNode:
+    """The driver-app emulator. Time is the ECU's: 10 ms per ECU_STATUS received. Answers every
+    MODE_RECOMMEND with one DRIVER_REQUEST (a new request, or the heartbeat repeating the last).
+
+    Policies: ``auto`` accepts a recommendation once it has been shown unchanged for the
+    reaction delay; ``fixed`` chooses ``mode`` at start, then refuses every recommendation;
+    ``refuse`` refuses every recommendation; ``script`` sends timed choices
+    [(t_s, kind, mode or None), ...] (``accept`` with no mode accepts what is recommended then);
+    ``interactive`` sends what :meth:`push` queued (keys in a terminal)."""
+
+    name = "APP"
+
+    def __init__(self, codec: Codec, policy: str = "auto", *, mode: int = fp.MODE_PASSIVE,
+                 reaction_ticks: int = 1000, script: Optional[Iterable] = None,
+                 dt: float = 0.001):
+        if policy not in POLICIES:
+            raise ValueError(f"unknown driver policy {policy!r} (one of {', '.join(POLICIES)})")
+        self.codec, self.policy, self.mode, self.dt = codec, policy, mode, dt
+        self.reaction_ticks = reaction_ticks
+        self.script = deque(sorted(script or [], key=lambda e: e[0]))
+        self.tx = Tx(codec)
+        self.p_status = period_ticks(codec, "ECU_STATUS", dt)
+        self.n_status = 0
+        self.t = 0                           # ticks of simulated time (from ECU_STATUS)
+        self.kind, self.req_mode, self.req_id = fp.REQ_NONE, 0, 0
+        self._shown, self._shown_since, self._answered = -1, 0, -1
+        self._chosen = False
+        self.queued: deque = deque()         # interactive choices (kind, mode)
+        self.view: dict = {}                 # latest decoded status for a display
+        self.log: list[tuple[float, str, int]] = []   # (t_s, kind, mode) of requests sent
+        self.on_request: Optional[Callable[[float, str, int], None]] = None
+
+    def push(self, kind: str, mode: Optional[int] = None) -> None:
+        self.queued.append((kind, mode))
+
+    def _send(self, kind: int, mode: int) -> None:
+        self.kind, self.req_mode = kind, mode
+        self.req_id = (self.req_id + 1) & 0xF
+        name = next(k for k, v in REQ_KINDS.items() if v == kind)
+        self.log.append((self.t * self.dt, name, mode))
+        if self.on_request is not None:
+            self.on_request(self.t * self.dt, name, mode)
+
+    def _decide(self, rec: int, active: int) -> None:
+        t = self.t
+        if self.policy == "fixed" and not self._chosen:
+            self._chosen = True
+            self._send(fp.REQ_CHOOSE, self.mode)
+            return
+        if self.policy == "script":
+            while self.script and self.script[0][0] <= t * self.dt + 1e-9:
+                _, kind, mode = self.script.popleft()
+                self._send(REQ_KINDS[kind], rec if mode is None else mode)
+            return
+        if self.policy == "interactive":
+            if self.queued:
+                kind, mode = self.queued.popleft()
+                self._send(REQ_KINDS[kind], rec if mode is None else mode)
+            return
+        if rec != self._shown:
+            self._shown, self._shown_since = rec, t
+        if (rec != active and rec != self._answered
+                and t - self._shown_since >= self.reaction_ticks):
+            self._answered = rec
+            self._send(fp.REQ_ACCEPT if self.policy == "auto" else fp.REQ_REFUSE, rec)
+        if rec == active:
+            self._answered = -1
+
+    def on_frame(self, fid: int, data: bytes) -> list[Frame]:
+        if fid == ID["ECU_STATUS"]:
+            d = self.codec.decode(fid, data)
+            self.n_status += 1
+            self.t = (self.n_status - 1) * self.p_status
+            if d.ok:
+                self.view.update(d.signals)
+        elif fid == ID["VEHICLE_SPEED"]:
+            d = self.codec.decode(fid, data)
+            if d.ok:
+                self.view.update(d.signals)
+        elif fid == ID["MODE_RECOMMEND"]:
+            d = self.codec.decode(fid, data, scaling=False)
+            if d.ok:
+                s = d.signals
+                self.view.update({f"REC_{k}": v for k, v in s.items()})
+                self._decide(int(s["RECOMMENDED_MODE"]), int(s["ACTIVE_MODE"]))
+            return [self.tx.frame("DRIVER_REQUEST", {
+                "REQ_KIND": self.kind, "REQ_MODE": self.req_mode, "REQ_ID": self.req_id})]
+        return []
+
+    def summary(self) -> dict:
+        kinds = Counter(k for _, k, _ in self.log)
+        return {"node": "app", "policy": self.policy, "frames_sent": dict(self.tx.sent),
+                "requests": dict(kinds), "log": [list(e) for e in self.log]}
+
+
+class LockstepClock:
+    """Log timestamps in lockstep pacing: simulated time. Tick k runs from the frame after
+    ACTUATOR_CMD(k-1) to ACTUATOR_CMD(k); frames inside a tick are 1 us apart."""
+
+    def __init__(self, dt_s: float):
+        self.dt_us = int(round(dt_s * 1e6))
+        self.tick = 0
+        self.j = 0
+
+    def stamp(self, fid: int) -> float:
+        us = self.tick * self.dt_us + self.j
+        self.j += 1
+        if fid == ID["ACTUATOR_CMD"]:
+            self.tick += 1
+            self.j = 0
+        return us / 1e6
+
+
+def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
+                   on_frame: Optional[Callable[[int, bytes], None]] = None,
+                   progress: Optional[Callable[[int, int], None]] = None) -> None:
+    """The lockstep protocol with the three nodes in this process: a FIFO stands in for the
+    bus (every frame goes to every other node, in the order sent)."""
+    nodes = (plant, ecu_node, app)
+    queue: deque = deque()
+
+    def send(sender, frames):
+        queue.extend((sender, f) for f in frames)
+        while queue:
+            src, (fid, data) = queue.popleft()
+            if on_frame is not None:
+                on_frame(fid, data)
+            for node in nodes:
+                if node is not src:
+                    replies = node.on_frame(fid, data)
+                    if replies:
+                        queue.extend((node, r) for r in replies)
+
+    report_every = max(1, plant.n // 200)
+    while not plant.done:
+        send(plant, plant.emit())
+        while ecu_node.ready():
+            send(ecu_node, ecu_node.tick())
+        if not plant.ready():
+            raise RuntimeError(f"lockstep broken at tick {plant.k}")
+        plant.step()
+        if progress is not None and (plant.k % report_every == 0 or plant.done):
+            progress(plant.k, plant.n)

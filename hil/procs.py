@@ -1,0 +1,240 @@
+"""One bench node as a process on a CAN bus: ``python -m hil ecu|plant|app``.
+
+Each opens the bus (``hil.bus``), prints ``READY`` on stdout once it listens, runs its node
+(``hil.nodes``) and, on SIGTERM/SIGINT or at the end, writes ``OUT/<node>.json`` (frames sent,
+statistics) and ``OUT/<node>.npz`` (its per-tick record) before it exits. Exit codes: 0 done or
+stopped on request, 3 bus unreachable or not allowed, 4 lockstep partner silent.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Optional
+
+import can
+import numpy as np
+
+from hil.bus import BusError, BusSpec, resolve
+
+try:
+    from can_remote.websocket import WebsocketClosed
+except ImportError:  # pragma: no cover - the remote plugin is a pinned dependency
+    WebsocketClosed = OSError
+
+BUS_ERRORS = (can.CanError, OSError, WebsocketClosed)
+EXIT_BUS = 3
+EXIT_PARTNER = 4
+PARTNER_TIMEOUT_S = 10.0
+
+
+class Stop:
+    """Set by SIGTERM/SIGINT; loops poll it."""
+
+    def __init__(self):
+        self.flag = False
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._set)
+
+    def _set(self, *_):
+        self.flag = True
+
+
+class PartnerSilent(RuntimeError):
+    pass
+
+
+def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -> can.BusABC:
+    spec, needs_hub = resolve(interface, channel)
+    if needs_hub:
+        raise BusError("no CAN bus: this kernel has no vcan0; start the bench with "
+                       "`python -m hil run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
+    assert spec is not None
+    return spec.open()
+
+
+def _send(bus: can.BusABC, frames) -> None:
+    for fid, data in frames:
+        bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+
+
+def _write(out: Optional[Path], name: str, summary: dict, trace: Optional[dict]) -> None:
+    if out is None:
+        print(json.dumps(summary), flush=True)
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    if trace is not None:
+        np.savez(out / f"{name}.npz", **trace)
+    tmp = out / f"{name}.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=1) + "\n")
+    tmp.replace(out / f"{name}.json")
+
+
+def _ready() -> None:
+    print("READY", flush=True)
+
+
+def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
+    """Lockstep: step when the command (and the app's answer) is in. Realtime: hold 1 kHz
+    against the monotonic clock; step with the latest command at each deadline."""
+    stats: dict = {"pace": pace}
+    if pace == "lockstep":
+        while not node.done and not stop.flag:
+            _send(bus, node.emit())
+            deadline = time.monotonic() + PARTNER_TIMEOUT_S
+            while not node.ready() and not stop.flag:
+                msg = bus.recv(0.5)
+                if msg is None:
+                    if time.monotonic() > deadline:
+                        raise PartnerSilent(f"no ACTUATOR_CMD for tick {node.k} within "
+                                            f"{PARTNER_TIMEOUT_S:g} s; are the ECU and the "
+                                            f"app running on this bus?")
+                    continue
+                node.on_frame(msg.arbitration_id, bytes(msg.data))
+            if stop.flag:
+                break
+            node.step()
+        return stats
+    dt = node.dt
+    lags = np.zeros(node.n)
+    t0 = time.monotonic() + 0.01
+    k0 = node.k
+    while not node.done and not stop.flag:
+        k = node.k
+        target = t0 + (k - k0) * dt
+        now = time.monotonic()
+        if target - now > 0.0005:
+            time.sleep(target - now - 0.0004)
+        while time.monotonic() < target:
+            pass
+        lags[k] = time.monotonic() - target
+        _send(bus, node.emit())
+        end = target + dt
+        while True:
+            rem = end - time.monotonic()
+            if rem <= 0:
+                break
+            msg = bus.recv(rem)
+            if msg is not None:
+                node.on_frame(msg.arbitration_id, bytes(msg.data))
+        node.step()
+    lag = lags[:node.k - k0] * 1e6
+    stats.update({
+        "ticks": int(len(lag)),
+        "missed_deadlines": node.missed_cmds,
+        "missed_deadline_ratio": node.missed_cmds / max(1, len(lag)),
+        "lag_p50_us": float(np.percentile(lag, 50)) if len(lag) else 0.0,
+        "lag_p99_us": float(np.percentile(lag, 99)) if len(lag) else 0.0,
+        "lag_max_us": float(lag.max()) if len(lag) else 0.0,
+        "overruns": int(np.count_nonzero(lag > dt * 1e6)),
+    })
+    return stats
+
+
+def run_listener(node, bus: can.BusABC, stop: Stop) -> None:
+    """ECU and app: react to frames until stopped."""
+    tick = getattr(node, "tick", None)
+    while not stop.flag:
+        msg = bus.recv(0.2)
+        if msg is None:
+            continue
+        replies = node.on_frame(msg.arbitration_id, bytes(msg.data))
+        if replies:
+            _send(bus, replies)
+        if tick is not None:
+            while node.ready():
+                _send(bus, node.tick())
+
+
+def _stdin_keys(app, stop: Stop) -> None:
+    """Interactive driver: one key per line. a = accept, r = refuse, 0-4 = choose a mode."""
+    print("keys: a accept, r refuse, 0 passive, 1 energy, 2 comfort, 3 safety, "
+          "4 comprehensive (then Enter)", file=sys.stderr, flush=True)
+    for line in sys.stdin:
+        if stop.flag:
+            return
+        key = line.strip().lower()
+        if key == "a":
+            app.push("accept")
+        elif key == "r":
+            app.push("refuse")
+        elif key in ("0", "1", "2", "3", "4"):
+            app.push("choose", int(key))
+        elif key:
+            print(f"unknown key {key!r}", file=sys.stderr, flush=True)
+
+
+def main(role: str, args) -> int:
+    from hil.cli import fail, route_or_exit, vehicle_or_exit
+    from hil.codec import Codec
+    from hil.config import ConfigError, load_driver_script
+
+    out = Path(args.out) if args.out else None
+    stop = Stop()
+    codec = Codec()
+    cfg = vehicle_or_exit(args.vehicle)
+    try:
+        if role == "plant":
+            from hil.nodes import PlantNode
+
+            route = route_or_exit(args.route)
+            node = PlantNode(cfg, route, args.seed, codec)
+            if args.duration is not None:
+                node.n = min(node.n, int(round(args.duration / node.dt)))
+        elif role == "ecu":
+            from hil.nodes import EcuNode
+            from hil.sil import ecu_params
+
+            p = ecu_params(cfg, args.mode, controller=args.controller,
+                           gains_file=Path(args.gains) if args.gains else None)
+            node = EcuNode(p, codec, lockstep=args.pace == "lockstep")
+        else:
+            from hil.sil import app_node
+
+            script = load_driver_script(args.script) if args.script else None
+            if args.policy == "script" and script is None:
+                fail("app: --policy script needs --script FILE")
+            node = app_node(codec, args.mode, cfg.sim.plant_dt_s, args.policy, script,
+                            args.reaction_s)
+            if not getattr(args, "quiet", False):
+                node.on_request = lambda t, kind, mode: print(
+                    f"app: t={t:7.2f} s  {kind} {mode}", file=sys.stderr, flush=True)
+    except ConfigError as exc:
+        fail(str(exc))
+    try:
+        bus = open_node_bus(role, getattr(args, "interface", None),
+                            getattr(args, "channel", None))
+    except BusError as exc:
+        print(f"{role}: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BUS
+    code = 0
+    stats: dict = {}
+    try:
+        _ready()
+        if role == "plant":
+            stats = run_plant(node, bus, args.pace, stop)
+        else:
+            if role == "app" and node.policy == "interactive":
+                threading.Thread(target=_stdin_keys, args=(node, stop), daemon=True).start()
+            run_listener(node, bus, stop)
+    except PartnerSilent as exc:
+        print(f"{role}: {exc}", file=sys.stderr, flush=True)
+        code = EXIT_PARTNER
+    except BUS_ERRORS as exc:
+        print(f"{role}: lost the bus: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+        code = EXIT_BUS
+    finally:
+        summary = node.summary()
+        summary.update(stats)
+        summary["stopped"] = stop.flag
+        summary["exit_code"] = code
+        _write(out, role, summary, node.trace() if hasattr(node, "trace") else None)
+        try:
+            bus.shutdown()
+        except Exception:  # noqa: BLE001 - the hub may already be gone
+            pass
+    return code

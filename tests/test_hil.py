@@ -1,0 +1,217 @@
+"""The bench as processes on the CAN hub (marker ``hil``): SIL = HIL, the log, the scenarios,
+and what happens when a node dies or the user presses Ctrl-C."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware import params as fp
+from hil import sil
+from hil.buslog import BusLogFile, read_log
+from hil.config import default_vehicle
+from hil.nodes import ID, LockstepClock
+from hil.road import load_route
+
+ROOT = Path(__file__).resolve().parents[1]
+ROUTES = Path(__file__).resolve().parent / "routes"
+CFG = default_vehicle()
+pytestmark = pytest.mark.hil
+
+
+def hil_run(out: Path, *args, timeout=900) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "hil", "run", "--out", str(out), "--json", *args],
+                          capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+
+
+def without_bench(report: dict) -> dict:
+    return {k: v for k, v in report.items() if k != "bench"}
+
+
+def sil_with_log(route, mode, seed, log_path: Path, **kw) -> dict:
+    log = BusLogFile(log_path)
+    clock = LockstepClock(CFG.sim.plant_dt_s)
+    try:
+        rep, _ = sil.run(CFG, route, mode, seed,
+                         on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)), **kw)
+    finally:
+        log.close()
+    return json.loads(json.dumps(rep))   # as the JSON round trip gives it
+
+
+def test_full_road_section_lockstep_equals_sil(tmp_path):
+    """The acceptance run: full_road_section, auto, seed 1, lockstep over the hub."""
+    proc = hil_run(tmp_path / "hil", "--route", "full_road_section", "--mode", "auto",
+                   "--seed", "1", "--pace", "lockstep")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    hil_rep = json.loads(proc.stdout)
+    sil_rep = sil_with_log(load_route("full_road_section"), "auto", 1, tmp_path / "sil.log")
+    # SIL = HIL: same ECU trace hash, same metrics, and the same log, byte for byte
+    assert hil_rep["trace_sha256"] == sil_rep["trace_sha256"]
+    assert without_bench(hil_rep) == without_bench(sil_rep)
+    log = tmp_path / "hil" / "bus.log"
+    assert log.read_bytes() == (tmp_path / "sil.log").read_bytes()
+    # every frame each node reports sending is in the log, and nothing else
+    frames = read_log(log)
+    sent = {name: n for node in hil_rep["frames_sent"].values() for name, n in node.items()}
+    assert len(frames) == sum(sent.values()) == hil_rep["bench"]["frames_logged"]
+    ids, counts = np.unique([f[1] for f in frames], return_counts=True)
+    assert {int(i): int(c) for i, c in zip(ids, counts)} == {ID[n]: c for n, c in sent.items()}
+    # the run itself: every tick commanded, grades right
+    assert hil_rep["plant_missed_cmds"] == 0 and hil_rep["plant_fallback_ticks"] == 0
+    assert hil_rep["grade_accuracy"] >= 0.95
+    assert hil_rep["mode_switches"] <= hil_rep["grade_changes"] + 1
+    for f in ("report.md", "timeseries.png", "modes.png", "road.png", "energy.png"):
+        assert (tmp_path / "hil" / f).stat().st_size > 0
+    # cantools decodes every frame of the log (SIM_TRUTH is in the DBC too)
+    dec = subprocess.run([sys.executable, "-m", "cantools", "decode",
+                          str(ROOT / "dbc" / "suspension.dbc")], stdin=open(log),
+                         capture_output=True, text=True, timeout=300)
+    assert dec.returncode == 0
+    assert "Unknown frame id" not in dec.stdout
+    assert dec.stdout.count("ACTUATOR_CMD(") == sent["ACTUATOR_CMD"]
+
+
+def test_refusal_scenario_and_can_player(tmp_path):
+    """A driver who chose comfort refuses every recommendation: the ECU recommends energy
+    feedback on the A road and safety on the C road, and stays in comfort."""
+    proc = hil_run(tmp_path, "--route", str(ROUTES / "refusal.toml"), "--mode", "comfort",
+                   "--seed", "2")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rep = json.loads(proc.stdout)
+    assert rep["driver"]["policy"] == "fixed"
+    assert rep["driver"]["requests"].get("refuse", 0) >= 2
+    assert "accept" not in rep["driver"]["requests"]
+    tr = np.load(tmp_path / "ecu.npz")
+    mode, rec = tr["mode"], tr["recommended"]
+    assert np.all(mode[1:] == fp.MODE_COMFORT)
+    assert {fp.MODE_ENERGY, fp.MODE_SAFETY} <= set(np.unique(rec).tolist())
+    # the refusals are on the bus: DRIVER_REQUEST frames with REQ_KIND = refuse
+    from hil.codec import Codec
+
+    codec = Codec()
+    kinds = [codec.decode(fid, data).signals["REQ_KIND"]
+             for _, fid, data in read_log(tmp_path / "bus.log") if fid == ID["DRIVER_REQUEST"]]
+    assert fp.REQ_REFUSE in kinds
+    # python-can's player accepts the log
+    play = subprocess.run([sys.executable, "-m", "can.player", "-i", "virtual", "-c", "replay",
+                           "--ignore-timestamps", str(tmp_path / "bus.log")],
+                          capture_output=True, text=True, timeout=300)
+    assert play.returncode == 0, play.stderr[-2000:]
+
+
+def test_safety_override_scenario(tmp_path):
+    """Comfort chosen; on the D stretch the tyre-deflection RMS passes the road-holding limit
+    and the ECU enters safety mode by itself (reason road holding), then returns to comfort."""
+    proc = hil_run(tmp_path, "--route", str(ROUTES / "override.toml"), "--mode", "comfort",
+                   "--seed", "1")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rep = json.loads(proc.stdout)
+    tr = np.load(tmp_path / "ecu.npz")
+    mode = tr["mode"]
+    safety = np.flatnonzero(mode == fp.MODE_SAFETY)
+    assert len(safety) > 1000
+    seg = np.load(tmp_path / "plant.npz")["segment"]
+    assert set(np.unique(seg[safety]).tolist()) <= {1, 2}      # during or just after D
+    assert mode[-1] == fp.MODE_COMFORT                           # and back
+    assert "accept" not in rep["driver"]["requests"]             # nobody asked for it
+    from hil.codec import Codec
+
+    codec = Codec()
+    recs = [codec.decode(fid, data).signals for _, fid, data in read_log(tmp_path / "bus.log")
+            if fid == ID["MODE_RECOMMEND"]]
+    assert any(r["OVERRIDE"] == 1 and r["REASON"] == 1 and r["ACTIVE_MODE"] == fp.MODE_SAFETY
+               for r in recs)
+    # the override lowered the tyre deflection on the D stretch
+    assert rep["segments"][1]["ratio"]["dtd"] < 1.0
+
+
+def _children(pid: int) -> list[int]:
+    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True,
+                         text=True).stdout
+    return [int(x) for x in out.split()]
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}").exists() and "zombie" not in Path(
+        f"/proc/{pid}/status").read_text().lower()
+
+
+def _start_and_wait_for_nodes(out: Path):
+    sup = subprocess.Popen([sys.executable, "-m", "hil", "run", "--out", str(out),
+                            "--route", str(ROUTES / "override.toml"), "--mode", "comfort"],
+                           cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        kids = {pid: _cmdline(pid) for pid in _children(sup.pid)}
+        if any(" plant " in c for c in kids.values()) and (out / "bus.log").exists() \
+                and (out / "bus.log").stat().st_size > 100_000:
+            return sup, kids
+        time.sleep(0.2)
+    sup.kill()
+    raise AssertionError("the bench did not start")
+
+
+def test_a_killed_node_stops_the_bench_with_a_clear_message(tmp_path):
+    sup, kids = _start_and_wait_for_nodes(tmp_path)
+    ecu = next(pid for pid, c in kids.items() if " ecu " in c)
+    os.kill(ecu, signal.SIGKILL)
+    _, err = sup.communicate(timeout=60)
+    assert sup.returncode == 1
+    assert "node ecu died" in err
+    time.sleep(0.5)
+    assert not [pid for pid in kids if _alive(pid)]      # no orphan: hub and nodes gone
+    frames = read_log(tmp_path / "bus.log")               # readable up to the last frame
+    assert len(frames) > 1000
+
+
+def test_ctrl_c_stops_everything_and_flushes_the_log(tmp_path):
+    sup, kids = _start_and_wait_for_nodes(tmp_path)
+    sup.send_signal(signal.SIGINT)
+    _, err = sup.communicate(timeout=60)
+    assert sup.returncode == 130
+    assert "interrupted at t =" in err
+    time.sleep(0.5)
+    assert not [pid for pid in kids if _alive(pid)]
+    text = (tmp_path / "bus.log").read_text()
+    assert text.endswith("\n") and len(read_log(tmp_path / "bus.log")) > 1000
+
+
+def test_a_node_without_a_bus_says_so():
+    env = {k: v for k, v in os.environ.items() if k not in ("CAN_INTERFACE", "CAN_CHANNEL")}
+    proc = subprocess.run([sys.executable, "-m", "hil", "ecu"], capture_output=True, text=True,
+                          cwd=ROOT, timeout=120, env=env)
+    assert proc.returncode == 3
+    assert "no CAN bus" in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "hil", "plant", "-i", "remote", "-c",
+                           "ws://127.0.0.1:9/"], capture_output=True, text=True, cwd=ROOT,
+                          timeout=120, env=env)
+    assert proc.returncode == 3
+    assert "cannot reach the bus" in proc.stderr
+
+
+def test_bad_driver_script_is_a_one_line_error(tmp_path):
+    bad = tmp_path / "s.toml"
+    bad.write_text('[[request]]\nt_s = 1.0\nkind = "choose"\nmode = "sport"\n')
+    proc = subprocess.run([sys.executable, "-m", "hil", "run", "--out", str(tmp_path / "o"),
+                           "--driver", "script", "--script", str(bad)], capture_output=True,
+                          text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "request[0].mode" in proc.stderr
