@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 run: $(STAMP)
-	$(PY) -m hil sim --route full_road_section --mode auto --seed 1 --out out/run
+	$(PY) -m hil run --route full_road_section --mode auto --seed 1 --pace lockstep --out out/run
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2

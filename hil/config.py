@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
+from firmware.params import MODE_ENERGY, MODE_NAMES
+
 PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_VEHICLE_FILE = PACKAGE_DIR / "vehicles" / "table3.toml"
 
@@ -255,8 +257,8 @@ def load_vehicle(path: str | Path | None) -> VehicleConfig:
 
 
 REQUEST_KINDS = ("accept", "refuse", "choose")
-MODE_BY_NAME = {"passive": 0, "energy": 1, "regen": 1, "comfort": 2, "safety": 3,
-                "comprehensive": 4}
+# mode names of the files and the command line ("regen" = energy feedback)
+MODE_BY_NAME = {**{name: i for i, name in enumerate(MODE_NAMES)}, "regen": MODE_ENERGY}
 
 
 def load_driver_script(path: str | Path) -> list[tuple[float, str, int | None]]:

@@ -19,7 +19,7 @@ from typing import Optional
 import can
 import numpy as np
 
-from hil.bus import BusError, BusSpec, resolve
+from hil.bus import BusError, resolve
 
 try:
     from can_remote.websocket import WebsocketClosed

@@ -16,14 +16,13 @@ import numpy as np
 
 from firmware import params as fp
 from hil.codec import Codec
-from hil.config import VehicleConfig
+from hil.config import MODE_BY_NAME, VehicleConfig
 from hil.ecu_params import DesignOptions, build, with_controllers
 from hil.metrics import rms
 from hil.nodes import AppNode, EcuNode, PlantNode, run_in_process
 from hil.road import GRADES, Route
 
-MODES = {"passive": fp.MODE_PASSIVE, "regen": fp.MODE_ENERGY, "comfort": fp.MODE_COMFORT,
-         "safety": fp.MODE_SAFETY, "comprehensive": fp.MODE_COMPREHENSIVE}
+MODES = {name: i for name, i in MODE_BY_NAME.items() if name != "energy"}   # CLI: "regen"
 CONTROLLERS = {name: i for i, name in enumerate(fp.CTRL_NAMES) if name != "none"}
 SETTLE_S = 3.0
 REACTION_S = 1.0

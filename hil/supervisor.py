@@ -194,9 +194,11 @@ def run(args) -> int:
         fail("run: --driver script needs --script FILE")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for name in NODES:
-        for suffix in (".json", ".npz", ".log"):
-            (out / f"{name}{suffix}").unlink(missing_ok=True)
+    from hil.figures import FIGURES
+
+    stale = [f"{n}{x}" for n in NODES for x in (".json", ".npz", ".log")]
+    for name in (*stale, "report.json", "report.md", *FIGURES):
+        (out / name).unlink(missing_ok=True)   # a failed run leaves no old report behind
     dt = cfg.sim.plant_dt_s
     n = int(round(route.duration_s / dt))
     if args.duration is not None:

@@ -215,3 +215,20 @@ def test_bad_driver_script_is_a_one_line_error(tmp_path):
                           text=True, cwd=ROOT, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "request[0].mode" in proc.stderr
+
+
+def test_realtime_pacing_runs_and_reports_its_deadlines(tmp_path):
+    """Realtime pacing: the plant holds 1 kHz; how many deadlines were missed is reported
+    (the figure itself is a benchmark, not a test)."""
+    proc = hil_run(tmp_path, "--route", str(ROUTES / "refusal.toml"), "--mode", "comfort",
+                   "--pace", "realtime", "--duration", "3")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rep = json.loads(proc.stdout)
+    rt = rep["bench"]["realtime"]
+    assert rep["bench"]["pace"] == "realtime" and rep["duration_s"] == pytest.approx(3.0)
+    assert 0.0 <= rt["missed_deadline_ratio"] <= 1.0
+    assert rt["lag_p50_us"] <= rt["lag_p99_us"] <= rt["lag_max_us"]
+    frames = read_log(tmp_path / "bus.log")
+    assert len(frames) == rep["bench"]["frames_logged"]
+    stamps = [f[0] for f in frames]
+    assert stamps == sorted(stamps) and 2.5 < stamps[-1] - stamps[0] < 10.0   # wall clock

@@ -1,0 +1,131 @@
+"""The frame-driven nodes in one process: driver policies, the receive path's reactions to bad
+frames, the plant's fallback without commands, and the lockstep clock."""
+
+import numpy as np
+import pytest
+
+from firmware import params as fp
+from firmware import safety
+from hil import sil
+from hil.codec import Codec
+from hil.config import ConfigError, default_vehicle, load_driver_script
+from hil.nodes import ID, AppNode, EcuNode, LockstepClock, PlantNode, run_in_process
+from hil.road import constant_route
+
+CFG = default_vehicle()
+CODEC = Codec()
+
+
+def test_script_policy_drives_the_modes():
+    script = [(1.0, "choose", fp.MODE_SAFETY), (2.5, "choose", fp.MODE_COMFORT),
+              (4.0, "refuse", None)]
+    rep, tr = sil.run(CFG, constant_route("B", 20.0, 5.0), "auto", 1, policy="script",
+                      script=script)
+    mode = tr.arrays["mode"]
+    t = np.arange(len(mode)) * 0.001
+    assert np.all(mode[t < 1.0] == fp.MODE_PASSIVE)
+    assert np.all(mode[(t > 1.11) & (t < 2.5)] == fp.MODE_SAFETY)
+    assert np.all(mode[t > 2.61] == fp.MODE_COMFORT)
+    assert rep["driver"]["requests"] == {"choose": 2, "refuse": 1}
+
+
+def test_interactive_policy_sends_what_was_pushed():
+    app = AppNode(CODEC, "interactive")
+    app.push("choose", fp.MODE_SAFETY)
+    rec = CODEC.encode_raw("MODE_RECOMMEND", {"RECOMMENDED_MODE": 2, "ACTIVE_MODE": 0})
+    (fid, data), = app.on_frame(ID["MODE_RECOMMEND"], rec)
+    d = CODEC.decode(fid, data).signals
+    assert (d["REQ_KIND"], d["REQ_MODE"], d["REQ_ID"]) == (fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
+    # nothing queued: the heartbeat repeats the last request
+    (_, data2), = app.on_frame(ID["MODE_RECOMMEND"], rec)
+    d2 = CODEC.decode(fid, data2).signals
+    assert (d2["REQ_KIND"], d2["REQ_ID"]) == (fp.REQ_CHOOSE, 1) and d2["COUNTER"] == 1
+
+
+def test_unknown_policy_is_refused():
+    with pytest.raises(ValueError, match="unknown driver policy"):
+        AppNode(CODEC, "sporty")
+
+
+def _bench(seconds=2.0):
+    p = sil.ecu_params(CFG, "comfort")
+    plant = PlantNode(CFG, constant_route("B", 20.0, seconds), 1, CODEC)
+    ecu_node = EcuNode(p, CODEC)
+    app = sil.app_node(CODEC, "comfort", p.dt_s)
+    return plant, ecu_node, app
+
+
+def test_a_corrupted_sensor_frame_sends_the_ecu_fail_safe_at_once():
+    plant, ecu_node, app = _bench()
+    bad_at = 1000
+    nodes = (plant, ecu_node, app)
+    while not plant.done:
+        frames = plant.emit()
+        if plant.k == bad_at:
+            fid, data = frames[-1]
+            frames[-1] = (fid, bytes([data[0] ^ 1]) + data[1:])   # CHECKSUM now wrong
+        queue = [(plant, f) for f in frames]
+        while queue:
+            src, (fid, data) = queue.pop(0)
+            for node in nodes:
+                if node is not src:
+                    queue += [(node, r) for r in node.on_frame(fid, data)]
+            while ecu_node.ready():
+                queue += [(ecu_node, f) for f in ecu_node.tick()]
+        plant.step()
+    faults = ecu_node.trace()["faults"]
+    duty = plant.trace()["duty"]
+    assert faults[bad_at] & safety.FAULT_CHECKSUM
+    assert duty[bad_at] == 0.0 and np.all(duty[bad_at:bad_at + 50] == 0.0)   # fail-safe
+    assert np.any(duty[bad_at + 60:] != 0.0)                                  # and recovered
+    # the corrupted frame is a lost frame: the next one shows the COUNTER gap
+    assert ecu_node.summary()["frame_faults"] == {"PLANT_SENSORS:checksum": 1,
+                                                  "PLANT_SENSORS:counter": 1}
+    assert faults[bad_at + 1] & safety.FAULT_COUNTER
+
+
+def test_the_plant_falls_back_to_passive_without_commands():
+    plant, ecu_node, app = _bench(2.0)
+    plant.n = 1000
+    run_in_process(plant, ecu_node, app)
+    assert plant.fallback_ticks == 0 and plant.missed_cmds == 0
+    plant.n += 10
+    for _ in range(10):          # the ECU falls silent
+        plant.emit()
+        plant.step()
+    assert plant.missed_cmds == 10
+    assert plant.fallback_ticks == 10 - plant.cmd_timeout_ticks
+    assert np.all(plant.trace()["duty"][-(10 - plant.cmd_timeout_ticks):] == 0.0)
+
+
+def test_the_ecu_ignores_truth_and_flags_unknown_ids():
+    _, ecu_node, _ = _bench()
+    ecu_node.on_frame(ID["SIM_TRUTH"], bytes(8))
+    assert ecu_node.link_faults == 0
+    ecu_node.on_frame(0x7FF, bytes(8))
+    assert ecu_node.link_faults & safety.FAULT_UNKNOWN_ID
+
+
+def test_lockstep_clock():
+    c = LockstepClock(0.001)
+    stamps = [c.stamp(f) for f in (ID["PLANT_SENSORS"], ID["ACTUATOR_CMD"], ID["PLANT_SENSORS"],
+                                   ID["MODE_RECOMMEND"], ID["DRIVER_REQUEST"], ID["ACTUATOR_CMD"])]
+    assert stamps == [0.0, 0.000001, 0.001, 0.001001, 0.001002, 0.001003]
+
+
+def test_driver_script_files(tmp_path):
+    good = tmp_path / "g.toml"
+    good.write_text('[[request]]\nt_s = 2.0\nkind = "accept"\n'
+                    '[[request]]\nt_s = 1.0\nkind = "choose"\nmode = "safety"\n')
+    assert load_driver_script(good) == [(1.0, "choose", fp.MODE_SAFETY), (2.0, "accept", None)]
+    for text, key in (('[[request]]\nkind = "accept"\n', "request[0].t_s"),
+                      ('[[request]]\nt_s = -1\nkind = "accept"\n', "request[0].t_s"),
+                      ('[[request]]\nt_s = 1\nkind = "maybe"\n', "request[0].kind"),
+                      ('[[request]]\nt_s = 1\nkind = "choose"\n', "request[0].mode"),
+                      ('[[request]]\nt_s = nan\nkind = "refuse"\n', "request[0].t_s"),
+                      ('[[request]]\nt_s = 1\nkind = "refuse"\nspeed = 3\n', "request[0].speed"),
+                      ("title = 1\n", "title"), ("", "[[request]]"), ("[[request", "invalid TOML")):
+        bad = tmp_path / "b.toml"
+        bad.write_text(text)
+        with pytest.raises(ConfigError, match=key.replace("[", r"\[").replace("]", r"\]")):
+            load_driver_script(bad)
