@@ -71,7 +71,8 @@ class Node:
                 raise NodeFailure(f"node {self.name} not ready within {timeout_s:g} s")
 
     def last_error(self) -> str:
-        self._err.flush()
+        if not self._err.closed:
+            self._err.flush()
         try:
             lines = [ln for ln in self.errlog.read_text(errors="replace").splitlines()
                      if ln.strip()]
