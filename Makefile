@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test clean
+.PHONY: setup run test tables tables-check clean
 
 setup: $(STAMP)
 
@@ -20,6 +20,13 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2
+
+# C-portable coefficient tables (c/generated/ecu_tables.h/.c); -check fails when stale
+tables: $(STAMP)
+	$(PY) -m tools.tables --out c/generated
+
+tables-check: $(STAMP)
+	$(PY) -m tools.tables --out c/generated --check
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -21,6 +21,7 @@ FAULT_BIT = {name: 1 << i for i, name in enumerate(CHANNELS)}
 @dataclass
 class ChannelState:
     value: float = 0.0          # last good value (SI)
+    counts: int | None = None   # its counts (None: no good sample yet; the value is 0)
     rail_count: int = 0
     good_count: int = 0
     faulty: bool = False
@@ -65,6 +66,7 @@ def sample(params: AdcParams, state: AdcState, raw: dict) -> tuple[dict, int]:
                 st.faulty = False
             if not st.faulty:
                 st.value = counts_to_si(ch, counts)
+                st.counts = counts
         if st.faulty:
             faults |= FAULT_BIT[name]
         values[name] = st.value

@@ -80,12 +80,24 @@ def _psd_shifted(Rn: np.ndarray) -> bool:
 
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
     st.x = params.phi @ st.x + params.gamma * u
+    predict_cov(params, st, road_intensity)
+
+
+def predict_cov(params: AkfParams, st: AkfState, road_intensity: float) -> None:
+    """The covariance half of the prediction (the fixed-point path predicts x itself)."""
     st.P = params.phi @ st.P @ params.phi.T + road_intensity * params.q_unit
 
 
 def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
+    resid = z - params.H @ st.x - params.D * u
+    K, eps = gain(params, st, resid)
+    st.x = st.x + K @ eps
+
+
+def gain(params: AkfParams, st: AkfState, resid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """From the residual z - H x_pred - D u: adapt the noise estimates, compute the gain K,
+    update P (Joseph form). Returns (K, eps); the state update is x += K eps."""
     H = params.H
-    resid = z - H @ st.x - params.D * u
     eps = resid - st.r if params.bias_adaptive else resid
     HP = H @ st.P
     HPHt = HP @ H.T
@@ -100,12 +112,12 @@ def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
         st.guard_hits += int(hit)
     S = HPHt + st.R
     K = np.linalg.solve(S, HP).T            # P H^T S^-1  (S symmetric)
-    st.x = st.x + K @ eps
     # Joseph form (I-KH) P (I-KH)^T + K R K^T, expanded: P - K HP - (K HP)^T + K S K^T
     KHP = K @ HP
     P = st.P - KHP - KHP.T + K @ S @ K.T
     st.P = 0.5 * (P + P.T)
     st.innovation = eps
+    return K, eps
 
 
 def step(params: AkfParams, st: AkfState, z: np.ndarray, u_tick: float, u_now: float,

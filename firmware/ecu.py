@@ -18,10 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware import actuator, adc, akf, grade, modes
+from firmware import actuator, adc, akf, fixed, grade, modes
 from firmware.control import bppid, pid, regen
 from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_NONE, CTRL_PID, CTRL_REGEN,
                              CTRL_SKYHOOK, MODE_ENERGY, MODE_PASSIVE, EcuParams)
+from firmware.fixedpoint import to_fixed, to_float
 
 # fault word: low byte = ADC channels (firmware.adc.FAULT_BIT); higher bits:
 FAULT_NONFINITE_ESTIMATE = 1 << 8   # the estimator diverged (reset, fail-safe this tick)
@@ -84,15 +85,44 @@ class EcuState:
     force_meas_prev: float = 0.0     # force from the measured current, last tick
     dtd2_ema: float = 0.0            # tyre-deflection mean square (road-holding check)
     tick: int = -1
+    fx_tables: fixed.FxTables | None = None   # fixed-point control path (None: float)
+    fx: fixed.FxState | None = None
+    fx_log: list | None = None       # (fixed.TickIn, fixed.outputs) per tick, when recording
 
 
-def init(params: EcuParams) -> EcuState:
+def init(params: EcuParams, fixed_point: bool = False, record: bool = False) -> EcuState:
+    """The ECU's state. ``fixed_point``: the control path in integer arithmetic
+    (``firmware.fixed``) instead of float; ``record``: keep its per-tick inputs and outputs
+    (the trace the C parity test replays)."""
     st = EcuState(params=params, adc=adc.AdcState(), akf=akf.init(params.akf),
                   grade=grade.GradeState(), modes=modes.init(params.modes),
                   actuator=actuator.ActuatorState(), bppid=bppid.init(params.control),
                   pid=pid.PidState())
     st.ctrl = params.modes.controllers[st.modes.active_mode]
+    if fixed_point:
+        st.fx_tables = fixed.build_tables(params)
+        st.fx = fixed.init(st.fx_tables, st.ctrl)
+        st.fx_log = [] if record else None
     return st
+
+
+FX_CHANNELS = ("body_accel", "wheel_accel", "susp_defl", "motor_current")
+
+
+def _estimate_fixed(st: EcuState, road_intensity: float) -> tuple:
+    """Steps 2 of the fixed-point path: integer prediction and correction of x around the
+    float covariance/gain update. Returns (x as float, the TickIn parts so far)."""
+    P, T, fs = st.params, st.fx_tables, st.fx
+    counts = tuple(st.adc.channels[n].counts for n in FX_CHANNELS)
+    resid_q = fixed.measure(T, fs, counts)
+    akf.predict_cov(P.akf, st.akf, road_intensity)
+    r_q = [to_fixed(float(v), fixed.MEAS_FRAC[j]) for j, v in enumerate(st.akf.r)]
+    resid = np.array([to_float(v, fixed.MEAS_FRAC[j]) for j, v in enumerate(resid_q)])
+    K, _ = akf.gain(P.akf, st.akf, resid)
+    k_q = fixed.quantize_gain(T, fs, K)
+    fixed.correct(T, fs, k_q, r_q)
+    st.akf.x = np.array([to_float(v, f) for v, f in zip(fs.x, fixed.STATE_FRAC)])
+    return counts, tuple(k_q), tuple(r_q), False
 
 
 def _force_of(st: EcuState, ctrl: int, x: np.ndarray, ba: float) -> float:
@@ -140,14 +170,21 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
         road_per_mps = P.akf.road_intensity_per_mps * min(hi, max(lo, gq)) / P.akf_q_gq_nominal
     else:
         road_per_mps = P.akf.road_intensity_per_mps
-    akf.predict(P.akf, st.akf, 0.5 * (st.force_meas_prev + force_meas), road_per_mps * speed)
-    akf.update(P.akf, st.akf, z, force_meas)
+    if st.fx is None:
+        akf.predict(P.akf, st.akf, 0.5 * (st.force_meas_prev + force_meas), road_per_mps * speed)
+        akf.update(P.akf, st.akf, z, force_meas)
+    else:
+        fx_in = _estimate_fixed(st, road_per_mps * speed)
+        force_meas = to_float(st.fx.force_meas, fixed.F_FORCE)
     st.force_meas_prev = force_meas
     x = st.akf.x
     if not math.isfinite(float(x.sum()) + float(st.akf.P.sum())):
         faults |= FAULT_NONFINITE_ESTIMATE
         st.akf = akf.init(P.akf)
         x = st.akf.x
+        if st.fx is not None:
+            fixed.reset_estimate(st.fx)
+            fx_in = (*fx_in[:3], True)
     # 3. grade and road-holding
     dtd_est = float(x[3] - x[4])
     g_est = grade.step(P.grade, st.grade, float(x[1]), dtd_est, ba, speed, P.dt_s)
@@ -160,6 +197,11 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
                       dtd_rms, safety_fault)
     if st.modes.events & modes.EVT_INVALID_REQUEST:
         faults |= FAULT_INVALID_REQUEST
+    # 5./6. control and actuator
+    regen_on = mode == MODE_ENERGY
+    if st.fx is not None:
+        return st, _finish(st, *_control_fixed(st, mode, safety_fault, regen_on, fx_in),
+                           regen_on, mode, g_est, faults, x, dtd_est, dtd_rms)
     # 5. control, with a crossfade when the controller changes (bumpless transfer)
     want = P.modes.controllers[mode]
     if want != st.ctrl:
@@ -174,7 +216,6 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     lim = P.control.force_limit
     force = min(lim, max(-lim, force))
     # 6. actuator
-    regen_on = mode == MODE_ENERGY
     active = (mode != MODE_PASSIVE or st.ramp < P.modes.ramp_ticks) and not safety_fault
     rel = float(x[0] - x[1])
     if active:
@@ -186,9 +227,27 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     else:
         actuator.reset(st.actuator)
         duty, force = 0, 0.0
+    return st, _finish(st, duty, active, force, regen_on, mode, g_est, faults, x, dtd_est, dtd_rms)
+
+
+def _control_fixed(st: EcuState, mode: int, safety_fault: bool, regen_on: bool,
+                   fx_in: tuple) -> tuple:
+    T, fs = st.fx_tables, st.fx
+    want = st.params.modes.controllers[mode]
+    duty, active, force_q = fixed.control(T, fs, want, mode == MODE_PASSIVE, safety_fault, regen_on)
+    st.ctrl, st.ctrl_from, st.ramp = fs.ctrl, fs.ctrl_from, fs.ramp
+    if st.fx_log is not None:
+        counts, k_q, r_q, reset = fx_in
+        st.fx_log.append((fixed.TickIn(counts, k_q, r_q, want, mode == MODE_PASSIVE,
+                                       safety_fault, regen_on, reset), fixed.outputs(fs)))
+    return duty, active, to_float(force_q, fixed.F_FORCE)
+
+
+def _finish(st: EcuState, duty: int, active: bool, force: float, regen_on: bool, mode: int,
+            g_est: int, faults: int, x: np.ndarray, dtd_est: float, dtd_rms: float) -> Outputs:
     # 7. status
     gq_log = st.grade.log_gq
-    out = Outputs(
+    return Outputs(
         duty_q15=duty, regen=regen_on and active, enable=active,
         recommended_mode=st.modes.recommended, active_mode=mode,
         grade=g_est, faults=faults,
@@ -200,4 +259,3 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
         ba_rms_mmps2=actuator.round_half_away(st.grade.ba_rms * 1e3),
         dtd_rms_um=actuator.round_half_away(dtd_rms * 1e6),
     )
-    return st, out

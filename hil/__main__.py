@@ -49,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="stop after S simulated seconds (default: the whole route)")
     p.add_argument("--out", metavar="DIR", help="write DIR/report.json, report.md, figures "
                    "and DIR/bus.log (every frame, candump -L)")
+    _fixed_argument(p)
     add_vehicle_argument(p)
     add_json_argument(p)
     _driver_arguments(p)
@@ -97,6 +98,12 @@ def _driver_arguments(p) -> None:
                    "with t_s, kind = accept|refuse|choose, mode)")
 
 
+def _fixed_argument(p) -> None:
+    p.add_argument("--fixed-point", action="store_true",
+                   help="run the ECU's control path in integer arithmetic (firmware/fixed.py, "
+                        "the path c/ecu_fx.c mirrors) instead of float")
+
+
 def _node_parsers(sub) -> None:
     from can.cli import add_bus_arguments
 
@@ -118,6 +125,7 @@ def _node_parsers(sub) -> None:
     p.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop after S simulated seconds (default: the whole route)")
     _driver_arguments(p)
+    _fixed_argument(p)
     common(p)
     p.set_defaults(out="out/run")
     add_json_argument(p)
@@ -134,6 +142,7 @@ def _node_parsers(sub) -> None:
                    help="only used with --controller (the mode whose controller it replaces)")
     p.add_argument("--controller", choices=CONTROLLER_CHOICES)
     p.add_argument("--gains", metavar="FILE")
+    _fixed_argument(p)
     common(p)
 
     p = sub.add_parser("app", help="the driver-app emulator node")
@@ -174,6 +183,7 @@ def _sim(args) -> int:
                 cfg, route, args.mode, args.seed, controller=args.controller,
                 gains_file=Path(args.gains) if args.gains else None, policy=args.driver,
                 script=script, progress=progress, duration_s=args.duration,
+                fixed_point=args.fixed_point,
                 on_frame=(lambda fid, data: log.write(fid, data, clock.stamp(fid)))
                 if log else None)
     except ConfigError as exc:

@@ -209,10 +209,11 @@ class EcuNode:
 
     name = "ECU"
 
-    def __init__(self, params: fp.EcuParams, codec: Codec, *, lockstep: bool = True):
+    def __init__(self, params: fp.EcuParams, codec: Codec, *, lockstep: bool = True,
+                 fixed_point: bool = False, record: bool = False):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
-        self.state = ecu.init(params)
+        self.state = ecu.init(params, fixed_point=fixed_point, record=record)
         self.tx = Tx(codec)
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
@@ -338,7 +339,9 @@ class EcuNode:
         return {"node": "ecu", "ticks": self.k, "frames_sent": dict(self.tx.sent),
                 "trace_sha256": self.sha.hexdigest(),
                 "akf_r_guard_hits": self.state.akf.guard_hits,
-                "frame_faults": dict(self.frame_faults)}
+                "frame_faults": dict(self.frame_faults),
+                "arithmetic": "float" if self.state.fx is None else "fixed",
+                "fx_gain_saturations": 0 if self.state.fx is None else self.state.fx.gain_saturations}
 
     def trace(self) -> dict:
         c = self.cols

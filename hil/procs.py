@@ -191,7 +191,8 @@ def main(role: str, args) -> int:
 
             p = ecu_params(cfg, args.mode, controller=args.controller,
                            gains_file=Path(args.gains) if args.gains else None)
-            node = EcuNode(p, codec, lockstep=args.pace == "lockstep")
+            node = EcuNode(p, codec, lockstep=args.pace == "lockstep",
+                           fixed_point=args.fixed_point)
         else:
             from hil.sil import app_node
 

@@ -93,6 +93,8 @@ def render_sil(report: dict) -> None:
     from rich.table import Table
 
     ctrl = f", controller {report['controller']}" if report.get("controller") else ""
+    if report.get("ecu_arithmetic") == "fixed":
+        ctrl += ", fixed-point ECU"
     table = Table(box=box.SIMPLE_HEAD,
                   title=f"{report.get('bench', {}).get('harness', 'sil').upper()}, route '{report['route']}', mode {report['mode']}{ctrl}, "
                         f"seed {report['seed']}",

@@ -72,18 +72,23 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         params: Optional[fp.EcuParams] = None, noise_step: Optional[tuple[float, float]] = None,
         progress: Optional[Callable[[int, int], None]] = None,
         on_frame: Optional[Callable[[int, bytes], None]] = None,
-        duration_s: Optional[float] = None) -> tuple[dict, SilTrace]:
+        duration_s: Optional[float] = None, fixed_point: bool = False,
+        fx_record: Optional[list] = None) -> tuple[dict, SilTrace]:
     """Run the SIL. Returns (report dict, per-tick trace). ``on_frame(id, data)`` sees every
-    frame in bus order; ``duration_s`` stops early."""
+    frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
+    control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs)."""
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
     codec = Codec()
     plant = PlantNode(cfg, route, seed, codec, noise_step=noise_step)
     if duration_s is not None:
         plant.n = min(plant.n, int(round(duration_s / plant.dt)))
-    ecu_node = EcuNode(p, codec, lockstep=True)
+    ecu_node = EcuNode(p, codec, lockstep=True, fixed_point=fixed_point,
+                       record=fx_record is not None)
     app = app_node(codec, mode, p.dt_s, policy, script)
     run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
+    if fx_record is not None:
+        fx_record.extend(ecu_node.state.fx_log)
     trace = merge_traces(plant.dt, plant.trace(), ecu_node.trace())
     report = build_report(cfg, route, mode, controller, seed, trace, plant.summary(),
                           ecu_node.summary(), app.summary())
@@ -106,6 +111,8 @@ def build_report(cfg, route, mode, controller, seed, trace: SilTrace, plant: dic
     report["frames_sent"] = {"PLANT": plant["frames_sent"], "ECU": ecu["frames_sent"],
                              "APP": app["frames_sent"]}
     report["frame_faults"] = ecu["frame_faults"]
+    report["ecu_arithmetic"] = ecu.get("arithmetic", "float")
+    report["fx_gain_saturations"] = ecu.get("fx_gain_saturations", 0)
     report["plant_fallback_ticks"] = plant["fallback_ticks"]
     report["plant_missed_cmds"] = plant["missed_cmds"]
     return report

@@ -233,6 +233,8 @@ def run(args) -> int:
             ecu_argv += ["--controller", args.controller]
         if args.gains:
             ecu_argv += ["--gains", args.gains]
+        if args.fixed_point:
+            ecu_argv += ["--fixed-point"]
         app_argv = [*common, "--mode", args.mode, "--quiet"]
         if args.driver:
             app_argv += ["--policy", args.driver]

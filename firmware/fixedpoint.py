@@ -1,0 +1,91 @@
+"""Fixed-point helpers: the integer arithmetic of the fixed-point control path, written so that
+C99 with ``int32_t``/``int64_t`` computes the same bits (``c/ecu_fx.c`` mirrors every function).
+
+Representation: a signal or constant is an ``int32`` mantissa ``m`` with ``f`` fractional bits,
+value = m * 2^-f (Qm.f with m + f = 31; CMSIS's q31 is f = 31, q15 an int16 with f = 15).
+Rules (DESIGN.md section 3): round half away from zero, saturate, never wrap.
+
+* ``mul(a, b, s)``: the int64 product a*b (|a*b| <= 2^62, no overflow), shifted right by
+  ``s`` in [0, 62] with rounding half away from zero, saturated to int32.
+* every add/sub saturates to int32; sums of products saturate each term, then the total
+  (at most a few int32 terms: no int64 overflow).
+"""
+
+from __future__ import annotations
+
+import math
+
+INT32_MAX = 2 ** 31 - 1
+INT32_MIN = -(2 ** 31)
+INT16_MAX = 2 ** 15 - 1
+INT16_MIN = -(2 ** 15)
+MAX_SHIFT = 62
+
+
+def sat32(x: int) -> int:
+    return INT32_MAX if x > INT32_MAX else INT32_MIN if x < INT32_MIN else x
+
+
+def sat16(x: int) -> int:
+    return INT16_MAX if x > INT16_MAX else INT16_MIN if x < INT16_MIN else x
+
+
+def rshift_round(p: int, s: int) -> int:
+    """p / 2^s rounded half away from zero (p in int64, s in [0, 62])."""
+    if s == 0:
+        return p
+    half = 1 << (s - 1)
+    return (p + half) >> s if p >= 0 else -((half - p) >> s)
+
+
+def mul(a: int, b: int, s: int) -> int:
+    return sat32(rshift_round(a * b, s))
+
+
+def add(a: int, b: int) -> int:
+    return sat32(a + b)
+
+
+def sub(a: int, b: int) -> int:
+    return sat32(a - b)
+
+
+def neg(a: int) -> int:
+    return sat32(-a)
+
+
+def clamp(x: int, lo: int, hi: int) -> int:
+    return lo if x < lo else hi if x > hi else x
+
+
+def div_round(a: int, n: int) -> int:
+    """a / n rounded half away from zero, n > 0 (C: integer division truncates toward zero,
+    so the C code adds n/2 to |a| first, exactly as here)."""
+    q = (abs(a) + n // 2) // n
+    return q if a >= 0 else -q
+
+
+def round_half_away(x: float) -> int:
+    return int(math.floor(x + 0.5)) if x >= 0.0 else -int(math.floor(-x + 0.5))
+
+
+def to_fixed(v: float, frac: int) -> int:
+    """A float as a saturated int32 mantissa with ``frac`` fractional bits."""
+    return sat32(round_half_away(v * 2.0 ** frac))
+
+
+def to_float(m: int, frac: int) -> float:
+    return m * 2.0 ** -frac
+
+
+def best_frac(v: float, lo: int = 0, hi: int = 46, headroom_bits: int = 0) -> int:
+    """The most fractional bits (in [lo, hi]) with which |v| * 2^headroom fits an int32."""
+    if not math.isfinite(v):
+        raise ValueError(f"cannot represent {v!r} in fixed point")
+    a = abs(v) * 2.0 ** headroom_bits
+    f = hi
+    while f > lo and round_half_away(a * 2.0 ** f) > INT32_MAX:
+        f -= 1
+    if round_half_away(a * 2.0 ** f) > INT32_MAX:
+        raise ValueError(f"{v!r} does not fit an int32 with {lo} fractional bits")
+    return f

@@ -1,0 +1,186 @@
+"""C portability as a tested fact: the generated tables compile warning-free and regenerate
+byte-identically; the C fixed-point control path (c/ecu_fx.c) gives the same integers as the
+Python one (firmware/fixed.py) on every tick of a recorded trace; cantools' generated C packs
+our frames to the same bytes as the Python encoder."""
+
+import random
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cantools
+import pytest
+
+from firmware import fixed
+from hil import sil
+from hil.codec import Codec, raw_range
+from hil.config import default_vehicle
+from hil.road import load_route
+from tools import tables
+
+ROOT = Path(__file__).resolve().parents[1]
+C_DIR = ROOT / "c"
+GEN = C_DIR / "generated"
+CFLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+TRACE_S = 80.0   # full_road_section: A, B, C and the start of D (every controller)
+
+
+def gcc() -> str:
+    cc = shutil.which("gcc")
+    assert cc, "gcc is needed for the C parity tests (Debian: apt-get install gcc)"
+    return cc
+
+
+def compile_c(out: Path, sources, *extra) -> Path:
+    cmd = [gcc(), *CFLAGS, "-O2", f"-I{GEN}", f"-I{C_DIR}", *extra, *map(str, sources), "-o", str(out)]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    assert res.returncode == 0 and not res.stderr, f"{' '.join(cmd)}\n{res.stderr}"
+    return out
+
+
+# ---------------------------------------------------------------- tables
+
+
+def test_tables_regenerate_identically_and_match_the_committed_copy():
+    a = tables.generate(default_vehicle())
+    b = tables.generate(default_vehicle())
+    assert a == b
+    for name, text in a.items():
+        committed = (GEN / name).read_text()
+        assert committed == text, f"{GEN / name} is stale: run make tables and commit it"
+
+
+def test_tables_name_generator_and_inputs_and_carry_no_date():
+    files = tables.generate(default_vehicle())
+    h = files[tables.HEADER]
+    assert "do not edit" in h and "tools/tables.py" in h
+    digest = re.search(r'ECU_TABLES_INPUTS_SHA256 "([0-9a-f]{64})"', h).group(1)
+    assert digest == tables.inputs_digest(default_vehicle(), None, tables.DesignOptions())
+    for text in files.values():
+        assert not re.search(r"\b(19|20)\d\d-\d\d-\d\d\b|__DATE__|__TIME__", text)
+
+
+def test_header_compiles_warning_free(tmp_path):
+    main = tmp_path / "use.c"
+    main.write_text('#include "ecu_tables.h"\nint main(void) { return FX_PHI_Q31[0] != 0 '
+                    '&& CONTROL_K_SAFETY_F32[0] != 0.0f ? 0 : 1; }\n')
+    exe = compile_c(tmp_path / "use", [main, GEN / "ecu_tables.c"])
+    assert subprocess.run([str(exe)]).returncode == 0
+
+
+def test_tables_cli_check_detects_a_stale_copy(tmp_path):
+    run = [sys.executable, "-m", "tools.tables", "--out", str(tmp_path)]
+    assert subprocess.run(run + ["--check"], cwd=ROOT, capture_output=True).returncode == 1
+    assert subprocess.run(run, cwd=ROOT, capture_output=True).returncode == 0
+    assert subprocess.run(run + ["--check"], cwd=ROOT, capture_output=True).returncode == 0
+    (tmp_path / tables.HEADER).write_text((tmp_path / tables.HEADER).read_text() + " ")
+    res = subprocess.run(run + ["--check", "--json"], cwd=ROOT, capture_output=True, text=True)
+    assert res.returncode == 1 and tables.HEADER in res.stdout
+
+
+def test_every_table_constant_is_its_float_to_the_precision_of_its_format():
+    T = fixed.build_tables(sil.ecu_params(default_vehicle(), "auto"))
+    n = 0
+    for name in T.__dataclass_fields__:
+        v = getattr(T, name)
+        for c in (v if isinstance(v, tuple) else (v,)):
+            if isinstance(c, fixed.Fx):
+                n += 1
+                assert abs(c.m * 2.0 ** -c.frac - c.value) <= 2.0 ** -(c.frac + 1), (name, c)
+                assert abs(c.m) < 2 ** 31
+                if abs(c.value) >= 1e-3:   # at least 16 significant bits
+                    assert abs(c.m * 2.0 ** -c.frac / c.value - 1.0) <= 2.0 ** -16, (name, c)
+    assert n > 100
+
+
+# ---------------------------------------------------------------- fixed-point parity
+
+
+@pytest.fixture(scope="module")
+def replay_exe(tmp_path_factory):
+    d = tmp_path_factory.mktemp("c")
+    return compile_c(d / "trace_replay", [C_DIR / "ecu_fx.c", C_DIR / "trace_replay.c",
+                                          GEN / "ecu_tables.c"])
+
+
+def trace_text(rec) -> str:
+    def line(i):
+        counts = [-1 if v is None else v for v in i.counts]
+        return " ".join(map(str, [*counts, *i.k_q, *i.r_q, i.want, int(i.passive),
+                                  int(i.fault), int(i.regen), int(i.reset)]))
+    return "\n".join(line(i) for i, _ in rec) + "\n"
+
+
+@pytest.mark.slow
+def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(replay_exe):
+    rec = []
+    params = sil.ecu_params(default_vehicle(), "auto")
+    rep, _ = sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
+                     fixed_point=True, fx_record=rec, duration_s=TRACE_S)
+    assert len(rec) == int(TRACE_S * 1000)
+    assert rep["ecu_arithmetic"] == "fixed" and rep["fx_gain_saturations"] == 0
+    # the trace covers every controller of the route and the crossfades between them
+    wants = {i.want for i, _ in rec}
+    assert wants >= {fixed.CTRL_NONE, fixed.CTRL_REGEN, fixed.CTRL_BPPID, fixed.CTRL_LQR,
+                     fixed.CTRL_GALQR}, wants
+    # the ECU's split path and the one-call replay are the same computation
+    T = fixed.build_tables(params)
+    s = fixed.init(T, params.modes.controllers[params.modes.initial_mode])
+    for k, (inp, out) in enumerate(rec):
+        assert fixed.tick(T, s, inp) == out, k
+    # C
+    res = subprocess.run([str(replay_exe)], input=trace_text(rec), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert len(lines) == len(rec)
+    for k, (text, (_, out)) in enumerate(zip(lines, rec)):
+        assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
+    duties = {out[0] for _, out in rec}
+    assert len(duties) > 1000   # the duty moves: the comparison is not of constants
+
+
+def test_c_replay_rejects_a_malformed_trace(replay_exe):
+    res = subprocess.run([str(replay_exe)], input="1 2 3\n", capture_output=True, text=True)
+    assert res.returncode == 2 and "malformed" in res.stderr
+
+
+# ---------------------------------------------------------------- cantools C
+
+
+def test_cantools_generated_c_packs_like_the_python_encoder(tmp_path):
+    dbc = ROOT / "dbc" / "suspension.dbc"
+    subprocess.run([sys.executable, "-m", "cantools", "generate_c_source", str(dbc),
+                    "-o", str(tmp_path)], check=True, capture_output=True)
+    compile_c(tmp_path / "suspension.o", [tmp_path / "suspension.c"], "-c")
+    from cantools.database.can.c_source import camel_to_snake_case
+
+    codec = Codec()
+    db = cantools.database.load_file(dbc)
+    rng = random.Random(5)
+    body, expected = [], []
+    for m in db.messages:
+        msg = camel_to_snake_case(m.name)
+        for n in range(12):
+            raw = {}
+            for sig in m.signals:
+                lo, hi = raw_range(sig)
+                raw[sig.name] = (lo, hi, 0)[n] if n < 3 else rng.randint(lo, hi)
+            data = codec.encode_raw(m.name, raw, counter=n % 16)
+            full = m.decode(data, scaling=False, decode_choices=False)   # with COUNTER/CHECKSUM
+            fields = " ".join(f"v.{camel_to_snake_case(k)} = {int(x)};" for k, x in full.items())
+            body.append(f"  {{ struct suspension_{msg}_t v; uint8_t d[8] = {{0}}; int i, r;\n"
+                        f"    memset(&v, 0, sizeof v); {fields}\n"
+                        f"    r = suspension_{msg}_pack(d, &v, sizeof d);\n"
+                        f"    if (r != {len(data)}) return 1;\n"
+                        f'    for (i = 0; i < r; i++) {{ printf("%02x", d[i]); }}\n    printf("\\n"); }}')
+            expected.append(data.hex())
+    harness = tmp_path / "harness.c"
+    harness.write_text('#include <stdio.h>\n#include <string.h>\n#include "suspension.h"\n'
+                       "int main(void) {\n" + "\n".join(body) + "\n  return 0;\n}\n")
+    exe = compile_c(tmp_path / "harness", [harness, tmp_path / "suspension.c"], f"-I{tmp_path}")
+    res = subprocess.run([str(exe)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == expected
+    assert len(expected) == 12 * len(db.messages)
