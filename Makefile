@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test tables tables-check clean
+.PHONY: setup run test bench tables tables-check clean
 
 setup: $(STAMP)
 
@@ -20,6 +20,10 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2
+
+# benchmarks: out/bench.json and a table (run on an idle machine)
+bench: $(STAMP)
+	$(PY) -m tools.bench --out out/bench.json
 
 # C-portable coefficient tables (c/generated/ecu_tables.h/.c); -check fails when stale
 tables: $(STAMP)

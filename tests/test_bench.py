@@ -1,0 +1,27 @@
+"""The benchmark tool (make bench) produces every key of its contract."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.hil
+def test_bench_tool_writes_every_key_of_the_contract(tmp_path):
+    """``tools.bench --quick`` (short runs: checks the tool, its figures mean nothing)."""
+    out = tmp_path / "bench.json"
+    res = subprocess.run([sys.executable, "-m", "tools.bench", "--quick", "--json", "--out",
+                          str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert data == json.loads(res.stdout)
+    for key in ("ecu_step_us_p50", "ecu_step_us_p99", "ecu_step_fixed_us_p50",
+                "ecu_step_fixed_us_p99", "sil_rtf", "hil_lockstep_rtf",
+                "realtime_missed_deadline_ratio", "ga_tune_s"):
+        assert isinstance(data[key], float) and data[key] >= 0.0, key
+    assert data["ecu_step_us_p99"] >= data["ecu_step_us_p50"] > 0.0
+    assert data["cpu_count"] >= 1 and data["cpu_model"]

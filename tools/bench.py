@@ -1,0 +1,166 @@
+"""Benchmarks (``make bench``): ECU step time, SIL and HIL real-time factors, real-time
+jitter, GA tuning time. Writes ``out/bench.json`` and prints a table.
+
+    python -m tools.bench [--out FILE] [--quick] [--json]
+
+Keys (the contract): ``ecu_step_us_p50``, ``ecu_step_us_p99`` (float path),
+``ecu_step_fixed_us_p50``, ``ecu_step_fixed_us_p99`` (the fixed-point path in Python),
+``sil_rtf`` (simulated s per wall s of ``hil sim`` on the default route), ``hil_lockstep_rtf``
+(``hil run --pace lockstep`` over the hub), ``realtime_missed_deadline_ratio`` (60 s at 1 kHz,
+``--pace realtime``), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
+machine: ``cpu_model``, ``cpu_count``, ``python``. ``--quick`` shortens every run (a smoke
+test of the tool, not a measurement). Each figure is measured on this machine, once; run it
+on an otherwise idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hil.cli import add_json_argument, emit
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = ROOT / "out" / "bench.json"
+GOALS = {"ecu_step_us_p99": ("<=", 200.0), "sil_rtf": (">=", 20.0),
+         "hil_lockstep_rtf": (">=", 1.5), "realtime_missed_deadline_ratio": ("<", 0.001),
+         "ga_tune_s": ("<=", 10.0)}
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
+    """Wall time of every firmware.ecu.step call inside a SIL run (comfort-heavy auto route)."""
+    from firmware import ecu
+    from hil import nodes, sil
+    from hil.config import default_vehicle
+    from hil.road import load_route
+
+    times: list[int] = []
+    real = ecu.step
+
+    def timed(st, inp):
+        t0 = time.perf_counter_ns()
+        out = real(st, inp)
+        times.append(time.perf_counter_ns() - t0)
+        return out
+
+    nodes.ecu.step = timed
+    try:
+        sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
+                duration_s=duration_s, fixed_point=fixed_point)
+    finally:
+        nodes.ecu.step = real
+    return np.array(times[100:], dtype=float) / 1000.0
+
+
+def sil_rtf(duration_s: float | None) -> float:
+    from hil import sil
+    from hil.config import default_vehicle
+    from hil.road import load_route
+
+    t0 = time.perf_counter()
+    rep, trace = sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
+                         duration_s=duration_s)
+    wall = time.perf_counter() - t0
+    return trace.segment.size * trace.dt_s / wall
+
+
+def hil_run(pace: str, duration_s: float | None) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "hil", "run", "--route", "full_road_section", "--mode",
+               "auto", "--seed", "1", "--pace", pace, "--out", tmp, "--json"]
+        if duration_s is not None:
+            cmd += ["--duration", repr(duration_s)]
+        res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"hil run --pace {pace} failed ({res.returncode}): "
+                               f"{res.stderr.strip().splitlines()[-1:]}")
+        return json.loads(res.stdout)["bench"]
+
+
+def ga_tune_s() -> float:
+    from hil.config import default_vehicle
+    from tools.tune_ga_lqr import tune
+
+    t0 = time.perf_counter()
+    tune(default_vehicle())
+    return time.perf_counter() - t0
+
+
+def run(quick: bool, progress=print) -> dict:
+    step_s = 2.0 if quick else 20.0
+    out: dict = {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(),
+                 "python": platform.python_version(), "quick": quick}
+    progress("ECU step, float path ...")
+    t = ecu_step_times(step_s, False)
+    out["ecu_step_us_p50"], out["ecu_step_us_p99"] = (float(np.percentile(t, q)) for q in (50, 99))
+    progress("ECU step, fixed-point path ...")
+    t = ecu_step_times(step_s, True)
+    out["ecu_step_fixed_us_p50"], out["ecu_step_fixed_us_p99"] = (
+        float(np.percentile(t, q)) for q in (50, 99))
+    progress("hil sim, full_road_section ...")
+    out["sil_rtf"] = sil_rtf(5.0 if quick else None)
+    progress("hil run --pace lockstep, full_road_section ...")
+    out["hil_lockstep_rtf"] = hil_run("lockstep", 3.0 if quick else None)["rtf"]
+    progress("hil run --pace realtime, 60 s ...")
+    rt = hil_run("realtime", 3.0 if quick else 60.0)
+    out["realtime_missed_deadline_ratio"] = rt["realtime"]["missed_deadline_ratio"]
+    out["realtime"] = rt["realtime"]
+    progress("GA-LQR tuning ...")
+    out["ga_tune_s"] = ga_tune_s()
+    out["goals"] = {k: {"goal": f"{op} {v:g}", "met": (out[k] <= v if op == "<=" else
+                                                      out[k] >= v if op == ">=" else out[k] < v)}
+                    for k, (op, v) in GOALS.items()}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tools.bench", description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=str(DEFAULT_OUT), metavar="FILE")
+    ap.add_argument("--quick", action="store_true", help="short runs: checks the tool, measures nothing")
+    add_json_argument(ap)
+    args = ap.parse_args(argv)
+    result = run(args.quick, progress=(lambda m: print(m, file=sys.stderr)))
+    path = Path(args.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2) + "\n")
+
+    def render(r):
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"bench on {r['cpu_model']} ({r['cpu_count']} cores)")
+        for col in ("key", "value", "goal", "met"):
+            table.add_column(col)
+        for k in ("ecu_step_us_p50", "ecu_step_us_p99", "ecu_step_fixed_us_p50",
+                  "ecu_step_fixed_us_p99", "sil_rtf", "hil_lockstep_rtf",
+                  "realtime_missed_deadline_ratio", "ga_tune_s"):
+            g = r["goals"].get(k)
+            table.add_row(k, f"{r[k]:.4g}", g["goal"] if g else "", ("yes" if g["met"] else "NO") if g else "")
+        Console().print(table)
+        print(f"written: {path}")
+
+    emit(result, args.json, render)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
