@@ -116,7 +116,8 @@ def _estimate_fixed(st: EcuState, road_intensity: float) -> tuple:
     counts = tuple(st.adc.channels[n].counts for n in FX_CHANNELS)
     resid_q = fixed.measure(T, fs, counts)
     akf.predict_cov(P.akf, st.akf, road_intensity)
-    r_q = [to_fixed(float(v), fixed.MEAS_FRAC[j]) for j, v in enumerate(st.akf.r)]
+    r_q = [to_fixed(float(v), fixed.MEAS_FRAC[j]) if math.isfinite(v) else 0
+           for j, v in enumerate(st.akf.r)]
     resid = np.array([to_float(v, fixed.MEAS_FRAC[j]) for j, v in enumerate(resid_q)])
     K, _ = akf.gain(P.akf, st.akf, resid)
     k_q = fixed.quantize_gain(T, fs, K)

@@ -24,11 +24,12 @@ precision that fits; a product c*x in format f_x to format f_y shifts by f_c + f
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware.fixedpoint import (add, best_frac, clamp, div_round, mul, neg, rshift_round, sat16,
+from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, best_frac, clamp, div_round, mul, neg, rshift_round, sat16,
                                  sat32, sub, to_fixed)
 from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_NONE, CTRL_PID, CTRL_REGEN,
                              CTRL_SKYHOOK, EcuParams)
@@ -343,9 +344,11 @@ def quantize_gain(T: FxTables, s: FxState, K: np.ndarray) -> list:
     """The float gain K (5 x m) as Q numbers in the table's formats (counts saturations)."""
     out = []
     for idx, f in enumerate(T.k_frac):
-        v = float(K.flat[idx]) * 2.0 ** f
-        q = to_fixed(float(K.flat[idx]), f)
-        if abs(v) > 2 ** 31:
+        v = float(K.flat[idx])
+        # a non-finite gain (diverged covariance) hands over 0: the ECU sees the non-finite
+        # covariance in the same tick, flags FAULT_NONFINITE_ESTIMATE and resets the filter
+        q = to_fixed(v, f) if math.isfinite(v) else 0
+        if q == INT32_MAX or q == INT32_MIN:
             s.gain_saturations += 1
         out.append(q)
     return out

@@ -97,3 +97,19 @@ def test_fixed_point_control_is_within_one_percent_of_float(mode, grade, seconds
     assert flt["trace_sha256"] != fxp["trace_sha256"]
     if mode == "regen":
         assert abs(b["harvested_w"] / a["harvested_w"] - 1.0) <= 0.01
+
+
+def test_a_diverged_covariance_is_a_fault_not_a_crash_in_the_fixed_path():
+    from firmware import ecu
+
+    p = sil.ecu_params(CFG, "comfort")
+    st = ecu.init(p, fixed_point=True, record=True)
+    inp = ecu.Inputs(tick=0, body_accel=2048, wheel_accel=2048, susp_defl=2048,
+                     motor_current=2048, speed=2000)
+    st, out = ecu.step(st, inp)
+    st.akf.P[0, 0] = float("nan")
+    st, out = ecu.step(st, ecu.Inputs(**{**inp.__dict__, "tick": 1}))
+    assert out.faults & ecu.FAULT_NONFINITE_ESTIMATE and not out.enable
+    assert st.fx.x == [0] * 5 and st.fx_log[-1][0].reset
+    st, out = ecu.step(st, ecu.Inputs(**{**inp.__dict__, "tick": 2}))
+    assert not out.faults & ecu.FAULT_NONFINITE_ESTIMATE
