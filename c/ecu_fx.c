@@ -175,6 +175,23 @@ static int32_t pid_step(fx_pid_t *st, int32_t e, int32_t kp, int32_t ki, int32_t
     return st->u;
 }
 
+/* gradient step with momentum of one layer (row-major weights, one row per delta) */
+static void learn_layer(int32_t *w, int32_t *dw, int32_t *b, int32_t *db, const int32_t *delta,
+                        int n_out, const int32_t *in, int n_in)
+{
+    int r, j;
+    for (r = 0; r < n_out; r++) {
+        int32_t ed = CM(FX_BP_ETA, delta[r], FX_F_W, FX_F_W);
+        for (j = 0; j < n_in; j++) {
+            int n = n_in * r + j;
+            dw[n] = add(CM(FX_BP_ALPHA, dw[n], FX_F_W, FX_F_W), mul(ed, in[j], FX_F_NN));
+            w[n] = add(w[n], dw[n]);
+        }
+        db[r] = add(CM(FX_BP_ALPHA, db[r], FX_F_W, FX_F_W), ed);
+        b[r] = add(b[r], db[r]);
+    }
+}
+
 static int32_t bppid_step(fx_state_t *s)
 {
     static const int gf[3] = {FX_F_KP, FX_F_KI, FX_F_KD};
@@ -221,26 +238,8 @@ static int32_t bppid_step(fx_state_t *s)
         one_m_h2 = ONE_NN - mul(h[i], h[i], FX_F_NN);
         d_h[i] = mul(one_m_h2, sat32(back), FX_F_NN);
     }
-    for (k = 0; k < 3; k++) {
-        int32_t ed = CM(FX_BP_ETA, d_o[k], FX_F_W, FX_F_W);
-        for (i = 0; i < 5; i++) {
-            int n = 5 * k + i;
-            s->dw_o[n] = add(CM(FX_BP_ALPHA, s->dw_o[n], FX_F_W, FX_F_W), mul(ed, h[i], FX_F_NN));
-            s->w_o[n] = add(s->w_o[n], s->dw_o[n]);
-        }
-        s->db_o[k] = add(CM(FX_BP_ALPHA, s->db_o[k], FX_F_W, FX_F_W), ed);
-        s->b_o[k] = add(s->b_o[k], s->db_o[k]);
-    }
-    for (i = 0; i < 5; i++) {
-        int32_t ed = CM(FX_BP_ETA, d_h[i], FX_F_W, FX_F_W);
-        for (j = 0; j < 4; j++) {
-            int n = 4 * i + j;
-            s->dw_h[n] = add(CM(FX_BP_ALPHA, s->dw_h[n], FX_F_W, FX_F_W), mul(ed, xin[j], FX_F_NN));
-            s->w_h[n] = add(s->w_h[n], s->dw_h[n]);
-        }
-        s->db_h[i] = add(CM(FX_BP_ALPHA, s->db_h[i], FX_F_W, FX_F_W), ed);
-        s->b_h[i] = add(s->b_h[i], s->db_h[i]);
-    }
+    learn_layer(s->w_o, s->dw_o, s->b_o, s->db_o, d_o, 3, h, 5);
+    learn_layer(s->w_h, s->dw_h, s->b_h, s->db_h, d_h, 5, xin, 4);
     return u;
 }
 

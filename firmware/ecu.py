@@ -155,12 +155,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     faults |= inp.link_faults
     ba, wa, defl, i_meas, speed = (v["body_accel"], v["wheel_accel"], v["susp_defl"],
                                    v["motor_current"], v["speed"])
-    # 2. AKF; the force acting now, from the measured current (direction picks the efficiency)
-    x_prev = st.akf.x
-    rel_prev = x_prev[0] - x_prev[1]
-    g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
-    force_meas = g * plant.force_constant * i_meas
-    z = np.array((ba, defl, wa)[:P.akf.H.shape[0]])   # [BA, SWS] or [BA, SWS, WA]
+    # 2. AKF
     # road intensity for the process noise: the grade estimate's G_q once there is one
     # (Sage-Husa adaptation of R needs Q about right on smooth roads, where sensor noise
     # matters), capped at the calibrated nominal (a larger Q on rough roads only adds
@@ -172,6 +167,12 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     else:
         road_per_mps = P.akf.road_intensity_per_mps
     if st.fx is None:
+        # the force acting now, from the measured current (direction picks the efficiency)
+        x_prev = st.akf.x
+        rel_prev = x_prev[0] - x_prev[1]
+        g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
+        force_meas = g * plant.force_constant * i_meas
+        z = np.array((ba, defl, wa)[:P.akf.H.shape[0]])   # [BA, SWS] or [BA, SWS, WA]
         akf.predict(P.akf, st.akf, 0.5 * (st.force_meas_prev + force_meas), road_per_mps * speed)
         akf.update(P.akf, st.akf, z, force_meas)
     else:

@@ -429,24 +429,24 @@ def bppid_step(T: FxTables, s: FxState) -> int:
         back = sat32(sum(mul(s.w_o[5 * k + i], d_o[k], F_W) for k in range(3)))
         one_m_h2 = ONE_NN - mul(h[i], h[i], F_NN)
         d_h.append(mul(one_m_h2, back, F_NN))
-    eta, alpha = T.bp_eta, T.bp_alpha
-    for k in range(3):
-        ed = _m(eta, d_o[k], F_W, F_W)
-        for i in range(5):
-            n = 5 * k + i
-            s.dw_o[n] = add(_m(alpha, s.dw_o[n], F_W, F_W), mul(ed, h[i], F_NN))
-            s.w_o[n] = add(s.w_o[n], s.dw_o[n])
-        s.db_o[k] = add(_m(alpha, s.db_o[k], F_W, F_W), ed)
-        s.b_o[k] = add(s.b_o[k], s.db_o[k])
-    for i in range(5):
-        ed = _m(eta, d_h[i], F_W, F_W)
-        for j in range(4):
-            n = 4 * i + j
-            s.dw_h[n] = add(_m(alpha, s.dw_h[n], F_W, F_W), mul(ed, xin[j], F_NN))
-            s.w_h[n] = add(s.w_h[n], s.dw_h[n])
-        s.db_h[i] = add(_m(alpha, s.db_h[i], F_W, F_W), ed)
-        s.b_h[i] = add(s.b_h[i], s.db_h[i])
+    _learn_layer(T, s.w_o, s.dw_o, s.b_o, s.db_o, d_o, h)
+    _learn_layer(T, s.w_h, s.dw_h, s.b_h, s.db_h, d_h, xin)
     return u
+
+
+def _learn_layer(T: FxTables, w: list, dw: list, b: list, db: list, deltas: list,
+                 inputs: tuple | list) -> None:
+    """Gradient step with momentum of one layer (row-major weights, one row per delta):
+    dw = alpha dw + eta delta input, db = alpha db + eta delta; w += dw, b += db."""
+    n_in = len(inputs)
+    for r, delta in enumerate(deltas):
+        ed = _m(T.bp_eta, delta, F_W, F_W)
+        for j in range(n_in):
+            n = n_in * r + j
+            dw[n] = add(_m(T.bp_alpha, dw[n], F_W, F_W), mul(ed, inputs[j], F_NN))
+            w[n] = add(w[n], dw[n])
+        db[r] = add(_m(T.bp_alpha, db[r], F_W, F_W), ed)
+        b[r] = add(b[r], db[r])
 
 
 def _dot_state(ks: tuple, x: list) -> int:
