@@ -19,7 +19,7 @@ run: $(STAMP)
 	$(PY) -m hil run --route full_road_section --mode auto --seed 1 --pace lockstep --out out/run
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2
+	$(PY) -m pytest -q -n 2 --dist loadgroup
 
 # benchmarks: out/bench.json and a table (run on an idle machine)
 bench: $(STAMP)

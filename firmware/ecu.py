@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware import actuator, adc, akf, fixed, grade, modes
+from firmware import actuator, adc, akf, fixed, grade, modes, safety
 from firmware.control import bppid, pid, regen
 from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_NONE, CTRL_PID, CTRL_REGEN,
                              CTRL_SKYHOOK, MODE_ENERGY, MODE_PASSIVE, EcuParams)
@@ -27,6 +27,21 @@ from firmware.fixedpoint import to_fixed, to_float
 # fault word: low byte = ADC channels (firmware.adc.FAULT_BIT); higher bits:
 FAULT_NONFINITE_ESTIMATE = 1 << 8   # the estimator diverged (reset, fail-safe this tick)
 FAULT_INVALID_REQUEST = 1 << 9      # driver request with an invalid mode (informational)
+# bit 7 (safety.FAULT_RATE): a message or a driver request came too often (ignored); 10-15: frame
+# validity of the receive path (safety.FAULT_*)
+FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
+               safety.FAULT_RATE: "rate", FAULT_NONFINITE_ESTIMATE: "estimator_reset",
+               FAULT_INVALID_REQUEST: "invalid_request", safety.FAULT_DLC: "dlc",
+               safety.FAULT_CHECKSUM: "checksum", safety.FAULT_COUNTER: "counter",
+               safety.FAULT_TIMEOUT: "timeout", safety.FAULT_UNKNOWN_ID: "unknown_id",
+               safety.FAULT_RANGE: "range"}
+
+
+def fault_names(word: int) -> list[str]:
+    """The names of the bits set in a fault word (lowest bit first)."""
+    return [name for bit, name in sorted(FAULT_NAMES.items()) if word & bit]
+
+
 # channels whose loss makes active control unsafe
 SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
                    | adc.FAULT_BIT["susp_defl"] | adc.FAULT_BIT["motor_current"]
@@ -199,6 +214,8 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
                       dtd_rms, safety_fault)
     if st.modes.events & modes.EVT_INVALID_REQUEST:
         faults |= FAULT_INVALID_REQUEST
+    if st.modes.events & modes.EVT_REQUEST_RATE:
+        faults |= safety.FAULT_RATE
     # 5./6. control and actuator
     regen_on = mode == MODE_ENERGY
     if st.fx is not None:

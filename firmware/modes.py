@@ -4,7 +4,8 @@
   C -> safety, D -> comprehensive.
 * It changes the active mode only on a driver request: ACCEPT (of the mode recommended now),
   or CHOOSE (any valid mode). REFUSE leaves the mode as it is. A request is acted on once, when
-  its counter changes.
+  its counter changes. A new request less than ``request_min_ticks`` after the previous new
+  one (spam: a stuck button, a babbling app) is ignored and reported (EVT_REQUEST_RATE).
 * Safety first: when the tyre-deflection RMS exceeds the road-holding limit, the ECU enters
   safety mode whatever was chosen and reports the reason; it returns to the driver's mode when
   the RMS has fallen below limit * exit ratio and the minimum hold has passed.
@@ -32,6 +33,7 @@ EVT_ACCEPTED = 1
 EVT_REFUSED = 2
 EVT_CHOSEN = 4
 EVT_INVALID_REQUEST = 8
+EVT_REQUEST_RATE = 16        # a new request came too soon after the previous one: ignored
 
 
 @dataclass
@@ -45,6 +47,8 @@ class ModeState:
     reason: int = REASON_NONE
     events: int = 0
     refused_mode: int = -1
+    ticks: int = 0               # steps taken
+    last_request_tick: int = -(1 << 30)   # step of the previous new request
 
 
 def init(params: ModeParams) -> ModeState:
@@ -55,11 +59,18 @@ def init(params: ModeParams) -> ModeState:
 def step(params: ModeParams, st: ModeState, grade: int, req_kind: int, req_mode: int,
          req_counter: int, dtd_rms: float, fault: bool) -> int:
     st.events = 0
+    st.ticks += 1
     if grade != GRADE_UNKNOWN:
         st.recommended = GRADE_TO_MODE[grade]
     if req_counter != st.last_counter:
         st.last_counter = req_counter
-        if req_kind == REQ_ACCEPT:
+        too_soon = (req_kind != 0
+                    and st.ticks - st.last_request_tick < params.request_min_ticks)
+        if req_kind != 0:
+            st.last_request_tick = st.ticks
+        if too_soon:
+            st.events |= EVT_REQUEST_RATE
+        elif req_kind == REQ_ACCEPT:
             if req_mode == st.recommended:
                 st.user_mode = st.recommended
                 st.events |= EVT_ACCEPTED

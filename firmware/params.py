@@ -119,6 +119,8 @@ class ModeParams:
     safety_hold_ticks: int       # minimum time in the override
     initial_mode: int
     controllers: tuple[int, ...]  # controller of each mode (index = mode)
+    request_min_ticks: int = 250  # a new driver request sooner than this after the previous
+    #                               new one is ignored and flagged (request spam)
 
 
 @dataclass(frozen=True)

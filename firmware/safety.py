@@ -7,7 +7,10 @@ two bytes (little-endian) followed by the payload bytes, the CHECKSUM byte left 
 protects against a frame masquerading as another message). COUNTER: increments by 1 per frame and wraps
 at 15; a repeat or a jump is a fault. A message is *valid* only after ``recover_frames``
 consecutive good frames (hysteresis) and becomes invalid on any bad frame or when nothing
-arrived for ``timeout_ticks``.
+arrived for ``timeout_ticks``. RATE: a frame arriving less than ``min_interval_ticks`` after the
+last accepted one (a node flooding the bus) is not used and flagged, but does not invalidate
+the message (its content may be fine). RANGE: a decoded value outside the DBC's declared
+[minimum, maximum] makes the frame invalid (``hil.codec`` checks it, after DLC and CHECKSUM).
 """
 
 from __future__ import annotations
@@ -39,12 +42,15 @@ def crc8(data: bytes | bytearray) -> int:
     return crc ^ CRC8_XOROUT
 
 
-# fault bits of frame validity (the ECU's fault word, above the ADC and estimator bits)
+# fault bits of frame validity (the ECU's fault word; bits 0-4 are the ADC channels, 8-9 the
+# estimator and the driver request)
+FAULT_RATE = 1 << 7               # a message (or driver request) arrived faster than allowed
 FAULT_DLC = 1 << 10
 FAULT_CHECKSUM = 1 << 11
 FAULT_COUNTER = 1 << 12
 FAULT_TIMEOUT = 1 << 13
 FAULT_UNKNOWN_ID = 1 << 14
+FAULT_RANGE = 1 << 15             # a signal outside its declared range
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,7 @@ class FrameSpec:
     checksum_byte: int | None     # byte index of the 8-bit CHECKSUM
     timeout_ticks: int = 0        # 0: no timeout supervision
     recover_frames: int = 1
+    min_interval_ticks: int = 0   # 0: no rate supervision
 
 
 def checksum_of(spec: FrameSpec, data: bytes | bytearray) -> int:
@@ -105,6 +112,10 @@ def check_frame(spec: FrameSpec, st: RxState, data: bytes | bytearray, tick: int
             if st.last_counter >= 0 and c != (st.last_counter + 1) & 0xF:
                 faults |= FAULT_COUNTER
             st.last_counter = c
+    if (not faults and spec.min_interval_ticks and st.last_rx_tick >= 0
+            and tick - st.last_rx_tick < spec.min_interval_ticks):
+        st.faults = FAULT_RATE    # too soon: not used, but the message stays valid
+        return False
     st.faults = faults
     if faults:
         st.valid, st.good_run = False, 0
@@ -114,6 +125,12 @@ def check_frame(spec: FrameSpec, st: RxState, data: bytes | bytearray, tick: int
     if st.good_run >= spec.recover_frames:
         st.valid = True
     return True
+
+
+def invalidate(st: RxState, fault: int) -> None:
+    """A frame that passed the checks above but whose content is unusable (e.g. RANGE)."""
+    st.faults |= fault
+    st.valid, st.good_run = False, 0
 
 
 def check_timeout(spec: FrameSpec, st: RxState, tick: int) -> bool:

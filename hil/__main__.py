@@ -66,6 +66,10 @@ def main(argv: list[str] | None = None) -> int:
         from hil import procs
 
         return procs.main(args.command, args)
+    if args.command == "faults":
+        from hil import faults
+
+        return faults.main(args)
 
     if args.command == "routes":
         from hil.road import load_route, shipped_routes
@@ -135,6 +139,7 @@ def _node_parsers(sub) -> None:
     p.add_argument("--route", default="full_road_section")
     p.add_argument("--seed", type=seed_arg, default=1)
     p.add_argument("--duration", type=positive_float, metavar="S")
+    _inject_argument(p)
     common(p)
 
     p = sub.add_parser("ecu", help="the ECU node (firmware behind its CAN path)")
@@ -154,7 +159,24 @@ def _node_parsers(sub) -> None:
     p.add_argument("--reaction-s", type=positive_float, default=1.0,
                    help="auto policy: accept a recommendation shown this long (simulated s)")
     p.add_argument("--quiet", action="store_true", help="do not print the requests sent")
+    _inject_argument(p)
     common(p)
+
+    p = sub.add_parser("faults", help="reliability: the fault-injection campaign over the bus; "
+                                      "a table (or --json), DIR/faults.json; exit 1 if a fault "
+                                      "is missed, crashes a node or is handled too late")
+    p.add_argument("--only", metavar="NAMES", help="comma-separated fault names (default: all)")
+    p.add_argument("--seed", type=seed_arg, default=1)
+    p.add_argument("--in-process", action="store_true",
+                   help="the three nodes in one process instead of processes on a bus")
+    add_bus_arguments(p)
+    p.add_argument("--out", metavar="DIR", default="out/faults",
+                   help="bus.log, node records and faults.json (default: out/faults)")
+    add_json_argument(p)
+
+
+def _inject_argument(p) -> None:
+    p.add_argument("--inject", metavar="PLAN", help=argparse.SUPPRESS)   # hil faults' plan
 
 
 def _sim(args) -> int:

@@ -4,7 +4,8 @@ Encoding rounds physical values to raw integers half away from zero and saturate
 signal's raw range (cantools' own scaling rounds to even and may raise or wrap: cantools
 #635/#462), then packs the raw values with cantools and seals COUNTER and CHECKSUM with
 ``firmware.safety``. Decoding checks DLC and CHECKSUM with ``firmware.safety`` before it
-unpacks; it never raises on bad input.
+unpacks, then every signal against the DBC's declared [minimum, maximum] (RANGE); it never
+raises on bad input.
 """
 
 from __future__ import annotations
@@ -28,13 +29,24 @@ def raw_range(sig) -> tuple[int, int]:
     return 0, (1 << sig.length) - 1
 
 
-def to_raw(sig, value: float) -> int:
-    """Physical -> raw: round half away from zero, saturate, never wrap. NaN -> 0."""
+def declared_raw_range(sig) -> tuple[int, int]:
+    """The DBC's [minimum, maximum] of a signal as raw integers (the raw range when absent)."""
     lo, hi = raw_range(sig)
+    if sig.minimum is not None:
+        lo = max(lo, math.ceil((sig.minimum - sig.offset) / sig.scale - 1e-9))
+    if sig.maximum is not None:
+        hi = min(hi, math.floor((sig.maximum - sig.offset) / sig.scale + 1e-9))
+    return lo, hi
+
+
+def to_raw(sig, value: float) -> int:
+    """Physical -> raw: round half away from zero, saturate at the declared range, never
+    wrap. NaN -> 0."""
+    lo, hi = declared_raw_range(sig)
     if isinstance(value, bool):
         value = int(value)
     if isinstance(value, float) and math.isnan(value):
-        return 0
+        return min(hi, max(lo, 0))
     if isinstance(value, float) and math.isinf(value):
         return hi if value > 0 else lo
     raw = (value - sig.offset) / sig.scale
@@ -77,6 +89,11 @@ class Codec:
                      sig.scale, sig.offset) for sig in m.signals)
             else:
                 self._layouts[m.frame_id] = None
+        # signals whose declared range is narrower than their raw range: (name, lo, hi) raw
+        self._ranges: dict[int, tuple] = {
+            m.frame_id: tuple((sig.name, *declared_raw_range(sig)) for sig in m.signals
+                              if declared_raw_range(sig) != raw_range(sig))
+            for m in self.db.messages}
 
     def message(self, name: str):
         return self._by_name[name]
@@ -114,10 +131,14 @@ class Codec:
         return safety.seal(self.specs[m.frame_id], data, counter)
 
     def decode(self, frame_id: int, data: bytes, state: Optional[safety.RxState] = None,
-               tick: int = 0, scaling: bool = True) -> Decoded:
-        """Decode with validity checks. Unknown IDs, wrong DLC and bad CHECKSUM give ok=False
-        and fault bits, never an exception. ``scaling=False`` gives raw integers."""
-        spec = self.specs.get(frame_id)
+               tick: int = 0, scaling: bool = True,
+               spec: Optional[safety.FrameSpec] = None) -> Decoded:
+        """Decode with validity checks. Unknown IDs, wrong DLC, bad CHECKSUM and values outside
+        the declared range give ok=False and fault bits, never an exception. ``scaling=False``
+        gives raw integers; ``spec`` overrides the receiver's view of the message (timeouts,
+        rate supervision)."""
+        if spec is None:
+            spec = self.specs.get(frame_id)
         if spec is None:
             return Decoded("", {}, False, safety.FAULT_UNKNOWN_ID)
         st = state if state is not None else safety.RxState()
@@ -130,15 +151,24 @@ class Codec:
         layout = self._layouts[frame_id]
         if layout is not None:
             word = int.from_bytes(bytes(data), "little")
-            values = {}
-            for sig, start, length, signed, _lo, _hi, scale, offset in layout:
+            raw = {}
+            for sig, start, length, signed, _lo, _hi, _scale, _offset in layout:
                 v = (word >> start) & ((1 << length) - 1)
                 if signed and v >> (length - 1):
                     v -= 1 << length
-                values[sig] = v * scale + offset if scaling else v
-            return Decoded(m.name, values, True, 0)
-        try:
-            values = m.decode(bytes(data), decode_choices=False, scaling=scaling)
-        except Exception:  # noqa: BLE001 - a frame that passed DLC/CRC but does not unpack
-            return Decoded(m.name, {}, False, safety.FAULT_DLC)
-        return Decoded(m.name, dict(values), True, 0)
+                raw[sig] = v
+        else:
+            try:
+                raw = dict(m.decode(bytes(data), decode_choices=False, scaling=False))
+            except Exception:  # noqa: BLE001 - a frame that passed DLC/CRC but does not unpack
+                return Decoded(m.name, {}, False, safety.FAULT_DLC)
+        for sig, lo, hi in self._ranges[frame_id]:
+            if not lo <= raw[sig] <= hi:
+                safety.invalidate(st, safety.FAULT_RANGE)
+                return Decoded(m.name, {}, False, st.faults)
+        if not scaling:
+            return Decoded(m.name, raw, True, 0)
+        if layout is not None:
+            return Decoded(m.name, {sig: raw[sig] * scale + offset
+                                    for sig, *_, scale, offset in layout}, True, 0)
+        return Decoded(m.name, dict(m.decode(bytes(data), decode_choices=False)), True, 0)

@@ -192,7 +192,7 @@ def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
         return fp.AdcChannel(range_min=c.range_min, lsb=c.lsb, full_scale=2 ** c.bits - 1)
 
     adc = fp.AdcParams(chan(sp.body_accel), chan(sp.wheel_accel), chan(sp.susp_defl),
-                       chan(sp.motor_current), chan(sp.speed), rail_ticks=5, recover_ticks=50)
+                       chan(sp.motor_current), chan(sp.speed), rail_ticks=3, recover_ticks=50)
     plant = fp.PlantParams(vp.sprung_mass_kg, vp.unsprung_mass_kg, vp.spring_stiffness_n_per_m,
                            vp.damping_n_s_per_m, vp.tire_stiffness_n_per_m,
                            ap.viscous_friction_n_s_per_m, ap.force_constant_n_per_a,

@@ -89,7 +89,8 @@ class PlantNode:
     name = "PLANT"
 
     def __init__(self, cfg: VehicleConfig, route: Route, seed: int, codec: Codec, *,
-                 noise_step: Optional[tuple[float, float]] = None, cmd_timeout_ticks: int = 3):
+                 noise_step: Optional[tuple[float, float]] = None, cmd_timeout_ticks: int = 3,
+                 inject=None):
         self.cfg, self.route, self.seed, self.codec = cfg, route, seed, codec
         self.dt = dt = cfg.sim.plant_dt_s
         self.timeline = drive_timeline(route, dt)
@@ -104,6 +105,7 @@ class PlantNode:
         self.twin.reset(self.zf[0])
         self.noise_step = noise_step
         self.cmd_timeout_ticks = cmd_timeout_ticks
+        self.inject = inject                # hil.faults.Injector (fault campaign) or None
         self.tx = Tx(codec)
         self.p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
         self.p_truth = period_ticks(codec, "SIM_TRUTH", dt)
@@ -117,7 +119,7 @@ class PlantNode:
         self.missed_cmds = 0                # steps without a fresh command
         self.fallback_ticks = 0             # steps in the passive fallback
         names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored",
-                 "drawn", "duty")
+                 "drawn", "duty", "fallback")
         self.arrays = {k: np.zeros(self.n) for k in names}
 
     @property
@@ -127,6 +129,8 @@ class PlantNode:
     def emit(self) -> list[Frame]:
         """Sample the sensors and return the frames of tick k (PLANT_SENSORS last)."""
         k, a = self.k, self.active
+        if self.inject is not None:
+            self.inject.before_emit(self)
         if self.noise_step is not None and k * self.dt >= self.noise_step[0]:
             self.sensors.noise_gain[:] = self.noise_step[1]
         ba, wa = a.accelerations()
@@ -145,11 +149,15 @@ class PlantNode:
         out.append(self.tx.frame("PLANT_SENSORS", {
             "BODY_ACCEL_RAW": r.body_accel, "WHEEL_ACCEL_RAW": r.wheel_accel,
             "SUSP_DEFL_RAW": r.susp_defl, "MOTOR_CURRENT_RAW": r.motor_current}))
+        if self.inject is not None:
+            out = self.inject.after_emit(self, out)
         return out
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
         if fid == ID["ACTUATOR_CMD"]:
-            self.cmd_fresh = True
+            self.cmd_fresh = True           # (lockstep: the ECU's tick is over either way)
+            if self.inject is not None and self.inject.drop_rx(self, fid):
+                return []                   # lost in the plant's receiver
             d = self.codec.decode(fid, data, self.cmd_rx, self.k, scaling=False)
             if d.ok:
                 s = d.signals
@@ -168,7 +176,8 @@ class PlantNode:
         if not self.cmd_fresh:
             self.missed_cmds += 1
         duty, regen, enable = self.cmd
-        if self.cmd_tick < 0 or k - self.cmd_tick > self.cmd_timeout_ticks:
+        fallback = self.cmd_tick < 0 or k - self.cmd_tick > self.cmd_timeout_ticks
+        if fallback:
             duty, regen, enable = 0, False, False
             self.fallback_ticks += 1
         a.step(self.zf[k + 1], duty / 32768.0, regen, enable)
@@ -185,13 +194,17 @@ class PlantNode:
         r["stored"][k] = a.ledger.stored_j
         r["drawn"][k] = a.ledger.supply_drawn_j
         r["duty"][k] = duty / 32768.0 if enable else 0.0
+        r["fallback"][k] = fallback
         self.k += 1
         self.cmd_fresh = False
 
     def summary(self) -> dict:
-        return {"node": "plant", "ticks": self.k, "frames_sent": dict(self.tx.sent),
-                "energy": self.active.ledger.as_dict(), "bad_cmd_frames": self.bad_cmd_frames,
-                "missed_cmds": self.missed_cmds, "fallback_ticks": self.fallback_ticks}
+        out = {"node": "plant", "ticks": self.k, "frames_sent": dict(self.tx.sent),
+               "energy": self.active.ledger.as_dict(), "bad_cmd_frames": self.bad_cmd_frames,
+               "missed_cmds": self.missed_cmds, "fallback_ticks": self.fallback_ticks}
+        if self.inject is not None:
+            out["injected"] = self.inject.applied
+        return out
 
     def trace(self) -> dict:
         k = self.k
@@ -201,11 +214,17 @@ class PlantNode:
         return out
 
 
+MISSING = object()   # a tick without a sensor frame (SIM_TICK: the ECU's timer ran alone)
+
+
 class EcuNode:
     """The firmware behind its CAN receive and transmit path. Frame validity is
-    ``firmware.safety``: an invalid PLANT_SENSORS frame feeds no counts (the ADC marks the
-    channels faulty, the ECU goes fail-safe), VEHICLE_SPEED times out after 3 periods, an
-    invalid DRIVER_REQUEST is ignored; every frame fault is reported in the fault word."""
+    ``firmware.safety``: an invalid PLANT_SENSORS frame, or a tick without one (SIM_TICK),
+    feeds no counts (the ADC marks the channels faulty, the ECU goes fail-safe the same tick),
+    VEHICLE_SPEED times out after 3 periods and is rate-supervised (a copy sooner than half
+    its period is not used), an invalid DRIVER_REQUEST is ignored; every frame fault is
+    reported in the fault word. ECU_STATUS carries the OR of the fault words since the last
+    ECU_STATUS, so a one-tick fault reaches the driver too."""
 
     name = "ECU"
 
@@ -218,10 +237,12 @@ class EcuNode:
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
         p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
-        self.spec_speed = replace(codec.specs[ID["VEHICLE_SPEED"]], timeout_ticks=3 * p_speed)
+        self.spec_speed = replace(codec.specs[ID["VEHICLE_SPEED"]], timeout_ticks=3 * p_speed,
+                                  min_interval_ticks=max(1, p_speed // 2))
         self.rx = {ID[n]: safety.RxState()
                    for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST")}
-        self.listen = {ID[n] for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST")}
+        self.listen = {ID[n] for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST",
+                                       "SIM_TICK")}
         self.ignore = set(ID.values()) - self.listen   # known frames of others (and SIM_TRUTH)
         self.k = 0
         self.pending: deque = deque()       # sensor frames not yet processed
@@ -230,25 +251,31 @@ class EcuNode:
         self.awaiting = 0                   # MODE_RECOMMEND sent, answer not yet received
         self.held_cmd: Optional[Frame] = None   # lockstep: ACTUATOR_CMD waiting for it
         self.link_faults = 0
+        self.status_faults = 0              # OR of the fault words since the last ECU_STATUS
         self.frame_faults: Counter = Counter()
         self.last_rec = None
         self.sha = hashlib.sha256()
         self.cols = {k: [] for k in ("road_est", "dtd_est", "force_cmd", "grade_est", "mode",
-                                     "recommended", "faults")}
+                                     "recommended", "faults", "enable")}
 
     def _note(self, d, name: str) -> None:
         self.link_faults |= d.faults
         for bit, label in ((safety.FAULT_DLC, "dlc"), (safety.FAULT_CHECKSUM, "checksum"),
                            (safety.FAULT_COUNTER, "counter"),
-                           (safety.FAULT_UNKNOWN_ID, "unknown_id")):
+                           (safety.FAULT_UNKNOWN_ID, "unknown_id"), (safety.FAULT_RATE, "rate"),
+                           (safety.FAULT_RANGE, "range")):
             if d.faults & bit:
                 self.frame_faults[f"{name}:{label}"] += 1
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
         if fid in self.ignore:
             return []
+        if fid == ID["SIM_TICK"]:
+            self.pending.append(MISSING)
+            return []
         rx = self.rx.get(fid)
-        d = self.codec.decode(fid, data, rx, self.k, scaling=False)
+        d = self.codec.decode(fid, data, rx, self.k, scaling=False,
+                              spec=self.spec_speed if fid == ID["VEHICLE_SPEED"] else None)
         if fid == ID["PLANT_SENSORS"]:
             self.pending.append(d.signals if d.ok else None)
             if not d.ok:
@@ -275,9 +302,17 @@ class EcuNode:
     def ready(self) -> bool:
         return bool(self.pending) and self.held_cmd is None
 
+    def timer_tick(self) -> None:
+        """Realtime pacing: the ECU's own timer fired without a sensor frame (bus silence)."""
+        self.pending.append(MISSING)
+
     def tick(self) -> list[Frame]:
         k = self.k
         s = self.pending.popleft()
+        if s is MISSING:
+            s = None
+            self.link_faults |= safety.FAULT_TIMEOUT
+            self.frame_faults["PLANT_SENSORS:missing"] += 1
         speed = self.speed_raw
         if not safety.check_timeout(self.spec_speed, self.rx[ID["VEHICLE_SPEED"]], k):
             self.link_faults |= safety.FAULT_TIMEOUT
@@ -300,11 +335,13 @@ class EcuNode:
                                   out.dtd_rms_um, 0))
         frames = []
         grade = UNKNOWN_GRADE_ON_BUS if out.grade == fp.GRADE_UNKNOWN else out.grade
+        self.status_faults |= out.faults
         if k % self.p_status == 0:
             frames.append(self.tx.frame("ECU_STATUS", {
                 "ACTIVE_MODE": out.active_mode, "ESTIMATED_GRADE": grade, "REASON": out.reason,
-                "FAULTS": out.faults, "BA_RMS": out.ba_rms_mmps2,
+                "FAULTS": self.status_faults, "BA_RMS": out.ba_rms_mmps2,
                 "DTD_RMS": (out.dtd_rms_um + 5) // 10}))
+            self.status_faults = 0
             frames.append(self.tx.frame("ECU_ESTIMATES", {
                 "ROAD_EST": _div_half_away(out.road_est_um, 10), "DTD_EST": out.dtd_est_um,
                 "GQ_LOG": out.gq_est_log_c, "FORCE_CMD": out.force_cmd_n}))
@@ -331,6 +368,7 @@ class EcuNode:
         c["mode"].append(out.active_mode)
         c["recommended"].append(out.recommended_mode)
         c["faults"].append(out.faults)
+        c["enable"].append(out.enable)
         self.k += 1
         self.link_faults = 0
         return frames
@@ -350,7 +388,8 @@ class EcuNode:
                 "grade_est": np.array(c["grade_est"], dtype=np.int16),
                 "mode": np.array(c["mode"], dtype=np.int8),
                 "recommended": np.array(c["recommended"], dtype=np.int8),
-                "faults": np.array(c["faults"], dtype=np.int32)}
+                "faults": np.array(c["faults"], dtype=np.int32),
+                "enable": np.array(c["enable"], dtype=bool)}
 
 
 def _div_half_away(a: int, b: int) -> int:
@@ -377,7 +416,7 @@ class AppNode:
 
     def __init__(self, codec: Codec, policy: str = "auto", *, mode: int = fp.MODE_PASSIVE,
                  reaction_ticks: int = 1000, script: Optional[Iterable] = None,
-                 dt: float = 0.001):
+                 dt: float = 0.001, inject=None):
         if policy not in POLICIES:
             raise ValueError(f"unknown driver policy {policy!r} (one of {', '.join(POLICIES)})")
         self.codec, self.policy, self.mode, self.dt = codec, policy, mode, dt
@@ -394,6 +433,10 @@ class AppNode:
         self.view: dict = {}                 # latest decoded status for a display
         self.log: list[tuple[float, str, int]] = []   # (t_s, kind, mode) of requests sent
         self.on_request: Optional[Callable[[float, str, int], None]] = None
+        # what the driver is told: (tick, FAULTS, REASON) of ECU_STATUS, on each change
+        self.faults_seen: list[tuple[int, int, int]] = []
+        self.on_faults: Optional[Callable[[float, int, int], None]] = None
+        self.inject = inject                 # hil.faults.Injector (fault campaign) or None
 
     def push(self, kind: str, mode: Optional[int] = None) -> None:
         self.queued.append((kind, mode))
@@ -438,6 +481,11 @@ class AppNode:
             self.t = (self.n_status - 1) * self.p_status
             if d.ok:
                 self.view.update(d.signals)
+                seen = (int(d.signals["FAULTS"]), int(d.signals["REASON"]))
+                if seen != (self.faults_seen[-1][1:] if self.faults_seen else (0, 0)):
+                    self.faults_seen.append((self.t, *seen))
+                    if self.on_faults is not None:
+                        self.on_faults(self.t * self.dt, *seen)
         elif fid == ID["VEHICLE_SPEED"]:
             d = self.codec.decode(fid, data)
             if d.ok:
@@ -448,14 +496,20 @@ class AppNode:
                 s = d.signals
                 self.view.update({f"REC_{k}": v for k, v in s.items()})
                 self._decide(int(s["RECOMMENDED_MODE"]), int(s["ACTIVE_MODE"]))
+                if self.inject is not None:
+                    self.inject.before_answer(self)
             return [self.tx.frame("DRIVER_REQUEST", {
                 "REQ_KIND": self.kind, "REQ_MODE": self.req_mode, "REQ_ID": self.req_id})]
         return []
 
     def summary(self) -> dict:
         kinds = Counter(k for _, k, _ in self.log)
-        return {"node": "app", "policy": self.policy, "frames_sent": dict(self.tx.sent),
-                "requests": dict(kinds), "log": [list(e) for e in self.log]}
+        out = {"node": "app", "policy": self.policy, "frames_sent": dict(self.tx.sent),
+               "requests": dict(kinds), "log": [list(e) for e in self.log],
+               "faults_seen": [list(e) for e in self.faults_seen]}
+        if self.inject is not None:
+            out["injected"] = self.inject.applied
+        return out
 
 
 class LockstepClock:

@@ -30,6 +30,7 @@ BUS_ERRORS = (can.CanError, OSError, WebsocketClosed)
 EXIT_BUS = 3
 EXIT_PARTNER = 4
 PARTNER_TIMEOUT_S = 10.0
+WATCHDOG_TICKS = 3          # realtime ECU: no sensor frame for 3 periods -> timer ticks
 
 
 class Stop:
@@ -135,19 +136,36 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
     return stats
 
 
-def run_listener(node, bus: can.BusABC, stop: Stop) -> None:
-    """ECU and app: react to frames until stopped."""
+def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> None:
+    """ECU and app: react to frames until stopped. ``watchdog_ticks`` (the ECU in realtime
+    pacing): once sensor frames have started, when none has come for that many tick periods,
+    the ECU's own timer runs a tick without sensor data (fail-safe, timeout named) every
+    period until frames come back; the bus going silent is thus detected and reported."""
     tick = getattr(node, "tick", None)
+    dt = getattr(getattr(node, "params", None), "dt_s", 0.001)
+    from hil.nodes import ID
+
+    sensors = ID["PLANT_SENSORS"]
+    last = None                      # time of the last sensor frame or timer tick
     while not stop.flag:
-        msg = bus.recv(0.2)
-        if msg is None:
+        timeout = 0.2
+        if watchdog_ticks and last is not None:
+            timeout = max(0.0, min(timeout, last + watchdog_ticks * dt - time.monotonic()))
+        msg = bus.recv(timeout)
+        if msg is not None:
+            replies = node.on_frame(msg.arbitration_id, bytes(msg.data))
+            if replies:
+                _send(bus, replies)
+            if msg.arbitration_id == sensors:
+                last = time.monotonic()
+        if tick is None:
             continue
-        replies = node.on_frame(msg.arbitration_id, bytes(msg.data))
-        if replies:
-            _send(bus, replies)
-        if tick is not None:
-            while node.ready():
-                _send(bus, node.tick())
+        if watchdog_ticks and last is not None and \
+                time.monotonic() - last >= watchdog_ticks * dt and not node.ready():
+            node.timer_tick()        # then once per period (no catching up)
+            last = time.monotonic() - (watchdog_ticks - 1) * dt
+        while node.ready():
+            _send(bus, node.tick())
 
 
 def _stdin_keys(app, stop: Stop) -> None:
@@ -168,6 +186,24 @@ def _stdin_keys(app, stop: Stop) -> None:
             print(f"unknown key {key!r}", file=sys.stderr, flush=True)
 
 
+def _injector(args, node: str):
+    """The fault injector of ``hil faults`` (``--inject PLAN``), or None."""
+    plan = getattr(args, "inject", None)
+    if not plan:
+        return None
+    from hil.faults import Injector
+
+    return Injector.from_file(plan, node, lockstep=args.pace == "lockstep")
+
+
+def _tell_driver(t: float, faults: int, reason: int) -> None:
+    from firmware.ecu import fault_names
+
+    what = ", ".join(fault_names(faults)) or "none"
+    state = "  -> fail-safe (passive damping)" if reason == 2 else ""
+    print(f"app: t={t:7.2f} s  ECU faults: {what}{state}", file=sys.stderr, flush=True)
+
+
 def main(role: str, args) -> int:
     from hil.cli import fail, route_or_exit, vehicle_or_exit
     from hil.codec import Codec
@@ -182,7 +218,7 @@ def main(role: str, args) -> int:
             from hil.nodes import PlantNode
 
             route = route_or_exit(args.route)
-            node = PlantNode(cfg, route, args.seed, codec)
+            node = PlantNode(cfg, route, args.seed, codec, inject=_injector(args, "plant"))
             if args.duration is not None:
                 node.n = min(node.n, int(round(args.duration / node.dt)))
         elif role == "ecu":
@@ -201,9 +237,11 @@ def main(role: str, args) -> int:
                 fail("app: --policy script needs --script FILE")
             node = app_node(codec, args.mode, cfg.sim.plant_dt_s, args.policy, script,
                             args.reaction_s)
+            node.inject = _injector(args, "app")
             if not getattr(args, "quiet", False):
                 node.on_request = lambda t, kind, mode: print(
                     f"app: t={t:7.2f} s  {kind} {mode}", file=sys.stderr, flush=True)
+                node.on_faults = _tell_driver
     except ConfigError as exc:
         fail(str(exc))
     try:
@@ -221,7 +259,8 @@ def main(role: str, args) -> int:
         else:
             if role == "app" and node.policy == "interactive":
                 threading.Thread(target=_stdin_keys, args=(node, stop), daemon=True).start()
-            run_listener(node, bus, stop)
+            run_listener(node, bus, stop, watchdog_ticks=WATCHDOG_TICKS
+                         if role == "ecu" and args.pace == "realtime" else 0)
     except PartnerSilent as exc:
         print(f"{role}: {exc}", file=sys.stderr, flush=True)
         code = EXIT_PARTNER

@@ -39,6 +39,7 @@ GRADE_GQ_M3 = {g: 16e-6 * 4.0**i for i, g in enumerate(GRADES)}
 CONVENTIONS = {"iso": 0.5, "paper": 1.0}
 DEFAULT_CUTOFF_N_PER_M = 0.005
 DEFAULT_DX_M = 0.01
+MAX_SPEED_MPS = 70.0     # the DBC's declared range of VEHICLE_SPEED.SPEED (252 km/h)
 ROUTES_DIR = PACKAGE_DIR / "routes"
 
 
@@ -129,8 +130,9 @@ def make_segment(grade: str | None = None, *, gq_m3: float | None = None, length
     for name, value in (("length_m", length_m), ("speed_mps", speed_mps)):
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be positive and finite, got {value}")
-    if speed_mps > 100.0:
-        raise ValueError(f"speed_mps must be at most 100 m/s, got {speed_mps}")
+    if speed_mps > MAX_SPEED_MPS:
+        raise ValueError(f"speed_mps must be at most {MAX_SPEED_MPS:g} m/s (the declared range "
+                         f"of VEHICLE_SPEED.SPEED), got {speed_mps}")
     return Segment(float(gq_m3), float(length_m), float(speed_mps), label)
 
 
@@ -196,8 +198,9 @@ def parse_route(data: Mapping[str, Any], path: Path, name: str) -> Route:
             raise ConfigError(f"{path}: '{where}' needs exactly one of 'grade' and 'gq_m3'")
         length = _num(path, f"{where}.length_m", seg["length_m"])
         speed = _num(path, f"{where}.speed_mps", seg["speed_mps"])
-        if speed > 100.0:
-            raise ConfigError(f"{path}: key '{where}.speed_mps' must be at most 100, got {speed}")
+        if speed > MAX_SPEED_MPS:
+            raise ConfigError(f"{path}: key '{where}.speed_mps' must be at most "
+                              f"{MAX_SPEED_MPS:g} (VEHICLE_SPEED.SPEED's range), got {speed}")
         if "grade" in seg:
             grade = seg["grade"]
             if not isinstance(grade, str) or grade.upper() not in GRADE_GQ_M3 or len(grade) != 1:

@@ -241,6 +241,9 @@ def run(args) -> int:
         if args.script:
             app_argv += ["--script", args.script]
         plant_argv = [*common, "--route", args.route, "--seed", str(args.seed)]
+        if getattr(args, "inject", None):       # hil faults: the injector's plan
+            plant_argv += ["--inject", args.inject]
+            app_argv += ["--inject", args.inject]
         if args.duration is not None:
             plant_argv += ["--duration", repr(args.duration)]
         for name, argv in (("ecu", ecu_argv), ("app", app_argv)):

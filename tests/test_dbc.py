@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from firmware import safety
-from hil.codec import DBC_PATH, Codec, raw_range, to_raw
+from hil.codec import DBC_PATH, Codec, declared_raw_range, raw_range, to_raw
+from hil.road import MAX_SPEED_MPS
 from tools.busload import bus_load
 
 CODEC = Codec()
@@ -19,7 +20,11 @@ def test_dbc_loads_in_cantools_and_canmatrix_and_follows_conventions():
     cm = canmatrix.formats.loadp_flat(str(DBC_PATH))
     assert {f.name for f in cm.frames} == {m.name for m in CODEC.db.messages}
     for m in CODEC.db.messages:
-        assert m.name == m.name.upper() and m.cycle_time, m.name
+        assert m.name == m.name.upper(), m.name
+        # every message is cyclic, except the event-only simulation tick of fault injection
+        event = m.dbc.attributes["GenMsgSendType"].value == "Event" \
+            if "GenMsgSendType" in m.dbc.attributes else False
+        assert bool(m.cycle_time) != event and (not event or m.name.startswith("SIM_")), m.name
         for s in m.signals:
             assert s.name == s.name.upper() and s.byte_order == "little_endian"
         if m.name in SAFETY_RELEVANT:
@@ -33,19 +38,40 @@ def test_dbc_loads_in_cantools_and_canmatrix_and_follows_conventions():
 
 
 def test_every_signal_round_trips_over_its_full_range():
+    """Inside the declared [minimum, maximum]: decoded as encoded. Outside it (but inside the
+    raw range): the frame is rejected with the RANGE fault."""
     rng = np.random.default_rng(0)
+    n_out = 0
     for m in CODEC.db.messages:
         for sig in m.signals:
             if sig.name in ("COUNTER", "CHECKSUM"):
                 continue
             lo, hi = raw_range(sig)
-            raws = {lo, hi, 0 if lo <= 0 <= hi else lo, *rng.integers(lo, hi, 50, endpoint=True).tolist()}
+            dlo, dhi = declared_raw_range(sig)
+            raws = {lo, hi, dlo, dhi, 0 if lo <= 0 <= hi else lo,
+                    *rng.integers(lo, hi, 50, endpoint=True).tolist()}
             for raw in raws:
                 phys = raw * sig.scale + sig.offset
-                data = CODEC.encode(m.name, {sig.name: phys}, counter=5)
+                data = CODEC.encode_raw(m.name, {sig.name: raw}, counter=5)
                 dec = CODEC.decode(m.frame_id, data)
+                if not dlo <= raw <= dhi:
+                    n_out += 1
+                    assert not dec.ok and dec.faults == safety.FAULT_RANGE, (m.name, sig.name)
+                    continue
                 assert dec.ok, (m.name, sig.name)
                 assert dec.signals[sig.name] == pytest.approx(phys, abs=1e-9 * max(1.0, abs(phys)))
+                assert CODEC.encode(m.name, {sig.name: phys}, counter=5) == data
+            # the physical encoder saturates at the declared range
+            for phys, raw in ((sig.maximum, dhi), (sig.minimum, dlo)):
+                if phys is not None:
+                    big = phys + (1 if raw == dhi else -1) * 1e3 * sig.scale
+                    assert CODEC.encode(m.name, {sig.name: big}) == \
+                        CODEC.encode_raw(m.name, {sig.name: raw}), (m.name, sig.name)
+    assert n_out > 0
+
+
+def test_route_speed_limit_is_the_speed_signal_range():
+    assert CODEC.message("VEHICLE_SPEED").get_signal_by_name("SPEED").maximum == MAX_SPEED_MPS
 
 
 def test_encode_rounds_half_away_from_zero_and_saturates():
@@ -56,7 +82,7 @@ def test_encode_rounds_half_away_from_zero_and_saturates():
     assert to_raw(duty, 5.0) == 32767 and to_raw(duty, -5.0) == -32768     # saturate
     assert to_raw(duty, math.inf) == 32767 and to_raw(duty, math.nan) == 0
     speed = CODEC.message("VEHICLE_SPEED").get_signal_by_name("SPEED")
-    assert to_raw(speed, -1.0) == 0 and to_raw(speed, 1e6) == 8191
+    assert to_raw(speed, -1.0) == 0 and to_raw(speed, 1e6) == 7000     # declared maximum
     assert to_raw(speed, 0.005) == 1 and to_raw(speed, 0.00499) == 0
 
 
@@ -119,7 +145,7 @@ def test_own_packer_equals_cantools_on_random_frames():
     rnd = random.Random(1)
     for m in CODEC.db.messages:
         for _ in range(300):
-            raw = {s.name: rnd.randint(*raw_range(s)) for s in m.signals}
+            raw = {s.name: rnd.randint(*declared_raw_range(s)) for s in m.signals}
             ours = CODEC.encode_raw(m.name, raw, raw.get("COUNTER", 0))
             ref = safety.seal(CODEC.specs[m.frame_id],
                               m.encode({**raw, **{k: 0 for k in ("COUNTER", "CHECKSUM")

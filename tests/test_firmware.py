@@ -55,7 +55,8 @@ def test_adc_stuck_at_rail_and_recovery_hysteresis():
 
 # -- modes -------------------------------------------------------------------------------------
 
-MP = P.modes
+# these tests send a request every step; the spam limit has its own test below
+MP = dataclasses.replace(P.modes, request_min_ticks=0)
 
 
 def run_modes(events, st=None, dtd=0.0, fault=False):
@@ -89,6 +90,30 @@ def test_refuse_and_choose():
         assert out[-1] == fp.MODE_SAFETY and st.events & modes.EVT_INVALID_REQUEST
     st, out = run_modes([(0, 9, 0, 12)], st)
     assert st.events & modes.EVT_INVALID_REQUEST
+
+
+def test_request_spam_is_ignored_and_reported():
+    mp = P.modes
+    assert mp.request_min_ticks > 1
+    st = modes.init(mp)
+    step = lambda kind, mode, counter: modes.step(mp, st, 1, kind, mode, counter, 0.0, False)
+    assert step(fp.REQ_CHOOSE, fp.MODE_SAFETY, 1) == fp.MODE_SAFETY
+    # a new request every tick, alternating modes: none is acted on, each is reported
+    for i in range(2, mp.request_min_ticks // 2):
+        mode = fp.MODE_COMFORT if i % 2 else fp.MODE_ENERGY
+        assert step(fp.REQ_CHOOSE, mode, i) == fp.MODE_SAFETY
+        assert st.events & modes.EVT_REQUEST_RATE
+    last = mp.request_min_ticks // 2 - 1
+    # the spam keeps the window open: quiet for less than the limit is still too soon
+    for _ in range(mp.request_min_ticks - 2):
+        step(fp.REQ_CHOOSE, fp.MODE_COMFORT, last)          # heartbeat: same counter
+    assert step(fp.REQ_CHOOSE, fp.MODE_COMFORT, last + 1) == fp.MODE_SAFETY
+    assert st.events & modes.EVT_REQUEST_RATE
+    # after a quiet interval a request is acted on
+    for _ in range(mp.request_min_ticks):
+        step(fp.REQ_CHOOSE, fp.MODE_COMFORT, last + 1)
+    assert step(fp.REQ_CHOOSE, fp.MODE_COMFORT, last + 2) == fp.MODE_COMFORT
+    assert st.events == modes.EVT_CHOSEN
 
 
 def test_safety_override_first_then_back_to_driver_mode():

@@ -18,6 +18,8 @@ from hil.buslog import BusLogFile, read_log
 from hil.config import default_vehicle
 from hil.nodes import ID, LockstepClock
 from hil.road import load_route
+from tests.procutil import children as _children
+from tests.procutil import cmdline as _cmdline
 
 ROOT = Path(__file__).resolve().parents[1]
 ROUTES = Path(__file__).resolve().parent / "routes"
@@ -132,26 +134,6 @@ def test_safety_override_scenario(tmp_path):
     assert rep["segments"][1]["ratio"]["dtd"] < 1.0
 
 
-def _children(pid: int) -> list[int]:
-    """Child PIDs from /proc (no procps needed)."""
-    kids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        if int(fields[1]) == pid:
-            kids.append(int(stat.parent.name))
-    return kids
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return ""
-
-
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -187,6 +169,8 @@ def test_a_killed_node_stops_the_bench_with_a_clear_message(tmp_path):
     assert not [pid for pid in kids if _alive(pid)]      # no orphan: hub and nodes gone
     frames = read_log(tmp_path / "bus.log")               # readable up to the last frame
     assert len(frames) > 1000
+    assert (tmp_path / "bus.log").read_bytes().endswith(b"\n")   # no torn last line
+    assert any(f[1] == ID["ACTUATOR_CMD"] for f in frames[-50:])  # the ECU's frames to the end
 
 
 def test_ctrl_c_stops_everything_and_flushes_the_log(tmp_path):

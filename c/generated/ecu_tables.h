@@ -65,7 +65,7 @@
 #define ADC_SPEED_LSB_Q31 ((int32_t)1374389535)
 #define ADC_SPEED_LSB_Q31_FRAC 37
 #define ADC_SPEED_FULL_SCALE 8191
-#define ADC_RAIL_TICKS 5
+#define ADC_RAIL_TICKS 3
 #define ADC_RECOVER_TICKS 50
 
 /* plant (firmware.params.PlantParams) */
@@ -203,6 +203,7 @@ extern const int8_t GRADE_GQ_CENTRES_Q31_FRAC[4];
 #define MODES_INITIAL_MODE 0
 #define MODES_CONTROLLERS_LEN 5
 extern const uint8_t MODES_CONTROLLERS[5];
+#define MODES_REQUEST_MIN_TICKS 250
 
 /* control (firmware.params.ControlParams) */
 #define CONTROL_K_SAFETY_LEN 5

@@ -1,0 +1,520 @@
+"""Fault injection and the reliability campaign: ``python -m hil faults [--json]``.
+
+The injector sits in the transmit and receive path of the plant and the driver-app nodes (a
+faulty transceiver, a broken sensor, a babbling sender, a careless app) and changes what they
+put on the bus, on a fixed schedule of tick windows. One lockstep run over the bus (hub or
+vcan0) drives the ECU through every bus fault in turn, separated by fault-free gaps; the
+configuration faults are separate ECU starts with a broken file. Each fault is then judged from
+the ECU's per-tick record (fault word, bridge enable), the plant's (passive fallback) and what
+the driver app received (ECU_STATUS FAULTS/REASON):
+
+* ``detected``: the fault's bit is set in the ECU's fault word (actuator-command loss: the plant
+  fell back to passive; a broken configuration file: a one-line error, exit code 2);
+* ``reaction_ticks``: ticks from the first faulty tick to the fail-safe state (bridge disabled,
+  no active force) for a safety-relevant fault, to the fault bit otherwise;
+* ``recovered``: after the fault, the ECU is back to a clean fault word with the bridge enabled
+  before the next fault; ``recovery_ticks`` counts from the last faulty tick (the hysteresis:
+  at least the ADC's run of good samples for a sensor fault);
+* ``crashed``: a node died or printed a traceback;
+* ``driver_told``: the app received an ECU_STATUS naming the fault.
+
+Everything is deterministic: the same seed gives the same campaign over the hub and in one
+process (``--in-process``), tick for tick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from firmware import adc, ecu, safety
+from firmware import params as fp
+from hil.nodes import ID, Frame
+
+MAX_REACTION_TICKS = 3          # safety-relevant faults: fail-safe within this many ticks
+CAMPAIGN_MODE = "comfort"       # the ECU drives actively (BP-PID) between faults
+CAMPAIGN_GRADE = "B"
+CAMPAIGN_SPEED_MPS = 20.0
+UNKNOWN_FRAME_ID = 0x123        # not in the DBC
+OUT_OF_RANGE_SPEED_RAW = 7500   # 75 m/s: inside 13 bits, outside the declared [0, 70] m/s
+INVALID_MODE = 6                # REQ_MODE 6: no such mode
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    name: str
+    node: str          # whose path is faulty: plant (transmit), plant_rx, app, config
+    ticks: int         # window length (bus faults)
+    safety: bool       # safety-relevant: fail-safe within MAX_REACTION_TICKS
+    expect: int        # ECU fault bits naming it (0: judged elsewhere)
+    what: str
+
+
+FAULTS = (
+    FaultSpec("sensor_loss_single", "plant", 1, True, safety.FAULT_TIMEOUT,
+              "one PLANT_SENSORS frame lost"),
+    FaultSpec("sensor_loss_burst", "plant", 50, True, safety.FAULT_TIMEOUT,
+              "50 consecutive PLANT_SENSORS frames lost"),
+    FaultSpec("bus_silence", "plant", 300, True, safety.FAULT_TIMEOUT,
+              "the plant sends nothing for 300 ms"),
+    FaultSpec("checksum", "plant", 5, True, safety.FAULT_CHECKSUM,
+              "5 PLANT_SENSORS frames with a corrupted CHECKSUM"),
+    FaultSpec("counter_repeat", "plant", 1, True, safety.FAULT_COUNTER,
+              "PLANT_SENSORS repeats its COUNTER once"),
+    FaultSpec("counter_jump", "plant", 1, True, safety.FAULT_COUNTER,
+              "PLANT_SENSORS skips 5 COUNTER values"),
+    FaultSpec("wrong_dlc", "plant", 5, True, safety.FAULT_DLC,
+              "5 PLANT_SENSORS frames with DLC 7 instead of 8"),
+    FaultSpec("unknown_id", "plant", 20, False, safety.FAULT_UNKNOWN_ID,
+              f"a frame with the unknown ID 0x{UNKNOWN_FRAME_ID:X} every tick for 20 ms"),
+    FaultSpec("out_of_range", "plant", 50, True, safety.FAULT_RANGE,
+              "VEHICLE_SPEED reports 75 m/s (declared range 0-70) for 50 ms"),
+    FaultSpec("adc_stuck_rail", "plant", 100, True, adc.FAULT_BIT["body_accel"],
+              "body accelerometer stuck at the upper rail (4095 counts) for 100 ms"),
+    FaultSpec("actuator_cmd_loss", "plant_rx", 100, True, 0,
+              "the plant receives no ACTUATOR_CMD for 100 ms (must fall back to passive)"),
+    FaultSpec("bus_flood", "plant", 100, False, safety.FAULT_RATE,
+              "the plant sends VEHICLE_SPEED every tick (10x its rate) for 100 ms"),
+    FaultSpec("driver_request_spam", "app", 1000, False, safety.FAULT_RATE,
+              "the app sends a new mode request with every answer (10 per second) for 1 s"),
+    FaultSpec("invalid_mode", "app", 100, False, ecu.FAULT_INVALID_REQUEST,
+              f"the app chooses mode {INVALID_MODE} (there are 5)"),
+    FaultSpec("config_nan", "config", 0, True, 0, "vehicle file with sprung_mass_kg = nan"),
+    FaultSpec("config_inf", "config", 0, True, 0,
+              "vehicle file with torque_constant_nm_per_a = inf"),
+    FaultSpec("gains_nan", "config", 0, True, 0, "GA-LQR gains file with a NaN gain"),
+)
+BY_NAME = {f.name: f for f in FAULTS}
+NOTES = {
+    "actuator_cmd_loss": "judged by the plant: passive fallback (the ECU cannot see it)",
+    "driver_request_spam": "the burst's first request is a valid one; the next, one answer "
+                           "(100 ms) later, is the first too soon",
+}
+
+
+@dataclass(frozen=True)
+class Window:
+    name: str
+    node: str
+    start: int
+    ticks: int
+
+
+def schedule(names: Optional[list[str]] = None, warmup: int = 1500,
+             gap: int = 700) -> list[Window]:
+    """The bus faults one after the other: a warm-up (estimator and grade settle), then each
+    fault's window followed by a fault-free gap (recovery)."""
+    out, k = [], warmup
+    for f in FAULTS:
+        if f.node == "config" or (names is not None and f.name not in names):
+            continue
+        out.append(Window(f.name, f.node, k, f.ticks))
+        k += f.ticks + gap
+    return out
+
+
+def campaign_ticks(windows: list[Window], gap: int = 700) -> int:
+    return (windows[-1].start + windows[-1].ticks + gap) if windows else 0
+
+
+class Injector:
+    """Applies the windows of one node (``plant`` or ``app``) to its frames. ``applied``
+    records, per fault, [first tick, last tick, frames touched]."""
+
+    def __init__(self, windows: list[Window], node: str, lockstep: bool = True):
+        nodes = ("plant", "plant_rx") if node == "plant" else (node,)
+        self.windows = [w for w in windows if w.node in nodes]
+        self.lockstep = lockstep
+        self.applied: dict[str, list[int]] = {}
+        self._speed_raw: Optional[dict] = None
+        self._spam_i = 0
+
+    @classmethod
+    def from_file(cls, path: str, node: str, lockstep: bool = True) -> "Injector":
+        data = json.loads(Path(path).read_text())
+        return cls([Window(**w) for w in data["windows"]], node, lockstep)
+
+    def _active(self, k: int, node: str) -> Optional[Window]:
+        for w in self.windows:
+            if w.node == node and w.start <= k < w.start + w.ticks:
+                return w
+        return None
+
+    def _mark(self, name: str, k: int, n: int = 1) -> None:
+        a = self.applied.setdefault(name, [k, k, 0])
+        a[1] = k
+        a[2] += n
+
+    # -- plant: transmit -----------------------------------------------------------------------
+
+    def before_emit(self, plant) -> None:
+        w = self._active(plant.k, "plant")
+        if w is None or w.name not in ("counter_repeat", "counter_jump"):
+            return
+        c = plant.tx.counters.get("PLANT_SENSORS", 0)
+        step = -1 if w.name == "counter_repeat" else 5
+        plant.tx.counters["PLANT_SENSORS"] = (c + step) & 0xF
+        self._mark(w.name, plant.k)
+
+    def after_emit(self, plant, frames: list[Frame]) -> list[Frame]:
+        k = plant.k
+        codec = plant.codec
+        for fid, data in frames:
+            if fid == ID["VEHICLE_SPEED"]:
+                self._speed_raw = codec.decode(fid, data, scaling=False).signals
+        w = self._active(k, "plant")
+        if w is None or w.name in ("counter_repeat", "counter_jump"):
+            return frames
+        name = w.name
+        sensors = ID["PLANT_SENSORS"]
+        out = list(frames)
+        if name in ("sensor_loss_single", "sensor_loss_burst", "bus_silence"):
+            dropped = [f for f in out if name == "bus_silence" or f[0] == sensors]
+            out = [f for f in out if f not in dropped]
+            for fid, _ in dropped:
+                plant.tx.sent[_name_of(fid)] -= 1
+            if self.lockstep:   # the ECU's timer still ticks: say so on the simulated bus
+                out.append(plant.tx.frame("SIM_TICK", {"TICK": k & 0xFF}))
+            self._mark(name, k, len(dropped))
+        elif name == "checksum":
+            fid, data = out[-1]
+            cb = codec.specs[sensors].checksum_byte
+            out[-1] = (fid, data[:cb] + bytes([data[cb] ^ 0x5A]) + data[cb + 1:])
+            self._mark(name, k)
+        elif name == "wrong_dlc":
+            fid, data = out[-1]
+            out[-1] = (fid, data[:-1])
+            self._mark(name, k)
+        elif name == "adc_stuck_rail":
+            out[-1] = _reencode(codec, out[-1], BODY_ACCEL_RAW=4095)
+            self._mark(name, k)
+        elif name == "out_of_range":
+            for i, f in enumerate(out):
+                if f[0] == ID["VEHICLE_SPEED"]:
+                    out[i] = _reencode(codec, f, SPEED=OUT_OF_RANGE_SPEED_RAW)
+                    self._mark(name, k)
+        elif name == "unknown_id":
+            out.insert(len(out) - 1, (UNKNOWN_FRAME_ID, bytes(range(8))))
+            plant.tx.sent[f"0x{UNKNOWN_FRAME_ID:X}"] += 1
+            self._mark(name, k)
+        elif name == "bus_flood":
+            if not any(f[0] == ID["VEHICLE_SPEED"] for f in out) and self._speed_raw:
+                out.insert(0, plant.tx.frame("VEHICLE_SPEED", self._speed_raw))
+                self._mark(name, k)
+        return out
+
+    # -- plant: receive ------------------------------------------------------------------------
+
+    def drop_rx(self, plant, fid: int) -> bool:
+        w = self._active(plant.k, "plant_rx")
+        if w is not None and fid == ID["ACTUATOR_CMD"]:
+            self._mark(w.name, plant.k)
+            return True
+        return False
+
+    # -- app: before it answers a MODE_RECOMMEND ------------------------------------------------
+
+    def before_answer(self, app) -> None:
+        w = self._active(app.t, "app")
+        if w is None:
+            return
+        if w.name == "driver_request_spam":
+            # a new request with every answer; the first asks for the mode in use
+            i = self._spam_i
+            self._spam_i += 1
+            mode = fp.MODE_COMFORT if i % 2 == 0 else fp.MODE_COMPREHENSIVE
+            app._send(fp.REQ_CHOOSE, mode)
+            self._mark(w.name, app.t)
+        elif w.name == "invalid_mode" and w.name not in self.applied:
+            app._send(fp.REQ_CHOOSE, INVALID_MODE)
+            self._mark(w.name, app.t)
+
+
+def _name_of(fid: int) -> str:
+    return next(n for n, i in ID.items() if i == fid)
+
+
+def _reencode(codec, frame: Frame, **raw_over) -> Frame:
+    """The same frame with some raw signal values replaced, COUNTER kept, CHECKSUM resealed
+    (a sensor or sender fault, not a transmission error)."""
+    fid, data = frame
+    name = _name_of(fid)
+    raw = dict(codec.decode(fid, data, scaling=False).signals)
+    raw.update(raw_over)
+    return fid, codec.encode_raw(name, raw, raw.get("COUNTER", 0))
+
+
+# -- judging ----------------------------------------------------------------------------------
+
+@dataclass
+class Result:
+    fault: str
+    detected: bool
+    reaction_ticks: Optional[int]
+    recovered: Optional[bool]
+    crashed: bool
+    safety_relevant: bool
+    recovery_ticks: Optional[int] = None
+    driver_told: Optional[bool] = None
+    fault_bits: list = None
+    failsafe_ticks: int = 0
+    mode_kept: Optional[bool] = None
+    note: str = ""
+
+
+def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
+          faults_seen: list, ticks_run: int, crash: Optional[str], mode: int) -> list[Result]:
+    """Per bus fault: read the ECU's and the plant's per-tick records around its window."""
+    faults = np.asarray(ecu_tr["faults"], dtype=np.int64)
+    enable = np.asarray(ecu_tr["enable"], dtype=bool)
+    modes = np.asarray(ecu_tr["mode"])
+    fallback = np.asarray(plant_tr["fallback"], dtype=bool)
+    n = min(len(faults), len(fallback))
+    out = []
+    for i, w in enumerate(windows):
+        spec = BY_NAME[w.name]
+        end = windows[i + 1].start if i + 1 < len(windows) else n
+        crashed = crash is not None and ticks_run < end
+        a = applied.get(w.name)
+        if a is None or a[0] >= n:
+            out.append(Result(w.name, False, None, False, crashed, spec.safety,
+                              note="not injected" if a is None else "run ended first"))
+            continue
+        first, last = a[0], a[1]
+        seg = slice(first, end)
+        if spec.node == "plant_rx":
+            hit = np.flatnonzero(fallback[seg])
+            bad = fallback[seg]
+            bits = []
+        else:
+            hit = np.flatnonzero(~enable[seg] if spec.safety else (faults[seg] & spec.expect))
+            if spec.safety:   # detected means named too, not only disabled
+                hit = hit if np.any(faults[seg] & spec.expect) else hit[:0]
+            bad = (faults[seg] != 0) | ~enable[seg]
+            bits = ecu.fault_names(int(np.bitwise_or.reduce(faults[seg])))
+        detected = hit.size > 0
+        reaction = int(hit[0]) if detected else None
+        bad_idx = np.flatnonzero(bad)
+        last_bad = first + int(bad_idx[-1]) if bad_idx.size else last
+        recovered = bool(detected and last_bad < end - 1)
+        told = None
+        if spec.expect:
+            told = any(first <= t < end and f & spec.expect for t, f, _ in faults_seen)
+        kept = None
+        if spec.node == "app":
+            kept = bool(np.all((modes[seg] == mode) | (modes[seg] == fp.MODE_PASSIVE)))
+        out.append(Result(
+            w.name, detected, reaction, recovered, crashed, spec.safety,
+            recovery_ticks=max(0, last_bad - last) if recovered else None, driver_told=told,
+            fault_bits=bits, failsafe_ticks=int(np.count_nonzero(~enable[seg])),
+            mode_kept=kept, note=NOTES.get(w.name, "")))
+    return out
+
+
+def config_faults(out: Path, names: Optional[list[str]] = None) -> list[Result]:
+    """Start the ECU node with a broken configuration file: it must refuse with a one-line
+    error (exit code 2) before it touches the bus, never with a traceback."""
+    from hil.config import DEFAULT_VEHICLE_FILE
+
+    out.mkdir(parents=True, exist_ok=True)
+    text = DEFAULT_VEHICLE_FILE.read_text()
+    cases = {
+        "config_nan": (["--vehicle"], "vehicle_nan.toml",
+                       _set_key(text, "sprung_mass_kg", "nan"), "sprung_mass_kg"),
+        "config_inf": (["--vehicle"], "vehicle_inf.toml",
+                       _set_key(text, "torque_constant_nm_per_a", "inf"), "torque_constant_nm_per_a"),
+        "gains_nan": (["--gains"], "gains_nan.json",
+                      '{"K": [NaN, 1.0, 2.0, 3.0, 4.0]}\n', "K"),
+    }
+    results = []
+    for name, (flag, fname, body, key) in cases.items():
+        if names is not None and name not in names:
+            continue
+        path = out / fname
+        path.write_text(body)
+        proc = subprocess.run([sys.executable, "-m", "hil", "ecu", *flag, str(path),
+                               "--out", str(out / "config_run")],
+                              capture_output=True, text=True, timeout=120,
+                              stdin=subprocess.DEVNULL)
+        err = proc.stderr.strip()
+        crashed = "Traceback" in proc.stderr or proc.returncode not in (0, 2)
+        detected = proc.returncode == 2 and key in err and len(err.splitlines()) == 1
+        results.append(Result(name, detected, 0 if detected else None, None, crashed, True,
+                              note=err.splitlines()[-1] if err else f"exit {proc.returncode}"))
+    return results
+
+
+def _set_key(text: str, key: str, value: str) -> str:
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if line.split("=")[0].strip() == key:
+            lines[i] = f"{key} = {value}"
+            return "\n".join(lines) + "\n"
+    raise KeyError(key)
+
+
+# -- running ----------------------------------------------------------------------------------
+
+def _route_file(out: Path, ticks: int, dt: float) -> Path:
+    length = CAMPAIGN_SPEED_MPS * (ticks * dt + 1.0)
+    path = out / "route.toml"
+    path.write_text(f'name = "faults"\ndescription = "fault campaign: grade {CAMPAIGN_GRADE} '
+                    f'at {CAMPAIGN_SPEED_MPS:g} m/s"\n\n[[segment]]\ngrade = "{CAMPAIGN_GRADE}"\n'
+                    f"length_m = {length:.1f}\nspeed_mps = {CAMPAIGN_SPEED_MPS:g}\n")
+    return path
+
+
+def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
+    """The campaign with the three nodes in this process (the lockstep FIFO)."""
+    from hil import nodes
+    from hil.codec import Codec
+    from hil.config import default_vehicle
+    from hil.road import load_route
+    from hil.sil import app_node, ecu_params
+
+    cfg = default_vehicle()
+    dt = cfg.sim.plant_dt_s
+    n = campaign_ticks(windows)
+    route = load_route(_route_file(out, n, dt))
+    codec = Codec()
+    plant = nodes.PlantNode(cfg, route, seed, codec, inject=Injector(windows, "plant"))
+    plant.n = min(plant.n, n)
+    ecu_node = nodes.EcuNode(ecu_params(cfg, CAMPAIGN_MODE), codec)
+    app = app_node(codec, CAMPAIGN_MODE, dt)
+    app.inject = Injector(windows, "app")
+    crash = None
+    try:
+        nodes.run_in_process(plant, ecu_node, app)
+    except Exception as exc:  # noqa: BLE001 - a crash is a finding, reported per fault
+        crash = f"{type(exc).__name__}: {exc}"
+    return {"ecu": ecu_node.trace(), "plant": plant.trace(),
+            "applied": {**plant.inject.applied, **app.inject.applied},
+            "faults_seen": app.faults_seen, "ticks": ecu_node.k, "crash": crash}
+
+
+def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
+                 interface: Optional[str] = None, channel: Optional[str] = None) -> dict:
+    """The campaign as ``hil run --pace lockstep`` with the injector in the plant and app
+    processes (``--inject``); a node that dies or prints a traceback is a crash."""
+    from hil import supervisor
+    from hil.config import default_vehicle
+
+    dt = default_vehicle().sim.plant_dt_s
+    n = campaign_ticks(windows)
+    plan = out / "plan.json"
+    plan.write_text(json.dumps({"windows": [asdict(w) for w in windows]}, indent=1) + "\n")
+    args = argparse.Namespace(
+        route=str(_route_file(out, n, dt)), mode=CAMPAIGN_MODE, controller=None, seed=seed,
+        gains=None, duration=n * dt, out=str(out), pace="lockstep", json=False, vehicle=None,
+        driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
+        inject=str(plan))
+    with contextlib.redirect_stdout(sys.stderr):
+        code = supervisor.run(args)
+    crash = None if code == 0 else f"hil run exited with code {code}"
+    for name in supervisor.NODES:
+        log = out / f"{name}.log"
+        if log.exists() and "Traceback" in log.read_text(errors="replace"):
+            crash = f"node {name} printed a traceback (see {log})"
+    try:
+        ecu_tr, plant_tr = dict(np.load(out / "ecu.npz")), dict(np.load(out / "plant.npz"))
+        sums = {k: json.loads((out / f"{k}.json").read_text()) for k in ("plant", "app")}
+    except (OSError, ValueError) as exc:
+        return {"ecu": {"faults": [], "enable": [], "mode": []}, "plant": {"fallback": []},
+                "applied": {}, "faults_seen": [], "ticks": 0,
+                "crash": crash or f"no node records: {exc}"}
+    return {"ecu": ecu_tr, "plant": plant_tr,
+            "applied": {**sums["plant"].get("injected", {}), **sums["app"].get("injected", {})},
+            "faults_seen": [tuple(e) for e in sums["app"]["faults_seen"]],
+            "ticks": len(ecu_tr["faults"]), "crash": crash}
+
+
+def campaign(out: Path, *, in_process: bool = False, seed: int = 1,
+             names: Optional[list[str]] = None, interface: Optional[str] = None,
+             channel: Optional[str] = None) -> list[Result]:
+    out.mkdir(parents=True, exist_ok=True)
+    windows = schedule(names)
+    results: list[Result] = []
+    if windows:
+        run = (run_in_process(windows, out, seed) if in_process
+               else run_over_bus(windows, out, seed, interface, channel))
+        results += judge(windows, run["ecu"], run["plant"], run["applied"],
+                         run["faults_seen"], run["ticks"], run["crash"],
+                         fp.MODE_COMFORT)
+        if run["crash"]:
+            print(f"faults: {run['crash']}", file=sys.stderr, flush=True)
+    results += config_faults(out / "config", names)
+    return results
+
+
+def passed(results: list[Result]) -> bool:
+    return all(r.detected and not r.crashed
+               and (not r.safety_relevant or (r.reaction_ticks or 0) <= MAX_REACTION_TICKS)
+               and r.recovered is not False for r in results)
+
+
+def _table(results: list[Result]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"fault campaign: ECU in {CAMPAIGN_MODE} mode, grade {CAMPAIGN_GRADE} at "
+                    f"{CAMPAIGN_SPEED_MPS:g} m/s, lockstep (ticks of 1 ms)")
+    for col in ("fault", "safety", "detected", "reaction", "recovered", "recovery", "crashed",
+                "driver told", "fault bits"):
+        t.add_column(col, no_wrap=True)
+
+    def cell(v, bad=False):
+        if v is None:
+            return "-"
+        if isinstance(v, bool):
+            return ("yes" if v else "NO") if bad else ("yes" if v else "no")
+        return str(v)
+
+    for r in results:
+        node = BY_NAME[r.fault].node
+        bits = ", ".join(r.fault_bits or []) or {
+            "config": "refused: exit 2, one-line error" if r.detected else r.note,
+            "plant_rx": "(plant: passive fallback)"}.get(node, "")
+        t.add_row(r.fault, cell(r.safety_relevant), cell(r.detected, True),
+                  cell(r.reaction_ticks), cell(r.recovered, True), cell(r.recovery_ticks),
+                  "YES" if r.crashed else "no", cell(r.driver_told, True), bits)
+    console = Console()
+    if not console.is_terminal:
+        console = Console(width=200)
+    console.print(t)
+
+
+def main(args) -> int:
+    names = None
+    if args.only:
+        names = [s.strip() for s in args.only.split(",") if s.strip()]
+        unknown = sorted(set(names) - set(BY_NAME))
+        if unknown:
+            from hil.cli import fail
+
+            fail(f"faults: unknown fault(s) {', '.join(unknown)} "
+                 f"(known: {', '.join(BY_NAME)})")
+    t0 = time.monotonic()
+    results = campaign(Path(args.out), in_process=args.in_process, seed=args.seed, names=names,
+                       interface=getattr(args, "interface", None),
+                       channel=getattr(args, "channel", None))
+    rows = [asdict(r) for r in results]
+    (Path(args.out) / "faults.json").write_text(json.dumps(rows, indent=1) + "\n")
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        _table(results)
+        print(f"{sum(r.detected for r in results)}/{len(results)} detected, "
+              f"{sum(r.crashed for r in results)} crashed, max safety reaction "
+              f"{max((r.reaction_ticks or 0) for r in results if r.safety_relevant)} ticks "
+              f"(limit {MAX_REACTION_TICKS}); {time.monotonic() - t0:.1f} s; "
+              f"{Path(args.out) / 'faults.json'}")
+    return 0 if passed(results) else 1

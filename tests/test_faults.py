@@ -1,0 +1,154 @@
+"""Reliability (issue 6): the fault-injection campaign over the bus, its determinism, the
+realtime ECU's watchdog when the plant goes silent, and that the judge does fail a bad ECU."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import pytest
+
+from firmware import ecu, safety
+from hil import faults
+from hil.buslog import read_log
+from hil.codec import Codec
+from hil.config import default_vehicle
+from hil.ecu_params import build
+from hil.nodes import ID
+from tests.procutil import children, cmdline
+
+ROOT = Path(__file__).resolve().parents[1]
+ROUTES = ROOT / "tests" / "routes"
+RECOVER_TICKS = build(default_vehicle()).adc.recover_ticks
+# the campaign runs once: its tests share one xdist worker (make test: --dist loadgroup)
+pytestmark = pytest.mark.hil
+CAMPAIGN = pytest.mark.xdist_group("fault_campaign")
+
+
+@pytest.fixture(scope="module")
+def campaign_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("faults")
+    proc = subprocess.run([sys.executable, "-m", "hil", "faults", "--json", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out, json.loads(proc.stdout)
+
+
+@CAMPAIGN
+def test_campaign_over_the_bus_meets_the_acceptance(campaign_dir):
+    _, rows = campaign_dir
+    assert [r["fault"] for r in rows] == [f.name for f in faults.FAULTS]
+    for r in rows:
+        assert {"fault", "detected", "reaction_ticks", "recovered", "crashed"} <= set(r)
+        assert r["detected"] and not r["crashed"], r
+        if r["safety_relevant"]:
+            assert 0 <= r["reaction_ticks"] <= faults.MAX_REACTION_TICKS, r
+    bus = [r for r in rows if faults.BY_NAME[r["fault"]].node != "config"]
+    for r in bus:
+        spec = faults.BY_NAME[r["fault"]]
+        assert r["recovered"], r
+        if spec.expect:
+            # named in the fault word and in what the driver app received
+            assert set(ecu.fault_names(spec.expect)) <= set(r["fault_bits"]), r
+            assert r["driver_told"], r
+        if spec.safety and spec.expect:
+            # fail-safe lasted at least the hysteresis: a run of good samples before recovery
+            assert r["recovery_ticks"] >= RECOVER_TICKS - 1, r
+        if not spec.safety:
+            assert r["failsafe_ticks"] == 0, r        # harmless faults do not stop control
+        if spec.node == "app":
+            assert r["mode_kept"], r                   # spam and bad modes change nothing
+
+
+@CAMPAIGN
+def test_the_log_holds_every_injected_frame(campaign_dir):
+    out, _ = campaign_dir
+    frames = read_log(out / "bus.log")
+    plant = json.loads((out / "plant.json").read_text())
+    ids = [f[1] for f in frames]
+    assert ids.count(faults.UNKNOWN_FRAME_ID) == plant["frames_sent"]["0x123"] == 20
+    # lost sensor frames: 1 + 50 + 300 ticks, each told by a SIM_TICK instead
+    assert ids.count(ID["SIM_TICK"]) == plant["frames_sent"]["SIM_TICK"] == 351
+    assert ids.count(ID["PLANT_SENSORS"]) == plant["frames_sent"]["PLANT_SENSORS"]
+    dlcs = [len(f[2]) for f in frames if f[1] == ID["PLANT_SENSORS"]]
+    assert dlcs.count(7) == 5
+    sent = sum(sum(json.loads((out / f"{n}.json").read_text())["frames_sent"].values())
+               for n in ("plant", "ecu", "app"))
+    assert len(frames) == sent
+
+
+@CAMPAIGN
+def test_campaign_is_the_same_in_one_process(campaign_dir, tmp_path):
+    _, rows = campaign_dir
+    local = [asdict(r) for r in faults.campaign(tmp_path, in_process=True)]
+    strip = lambda rs: [{k: v for k, v in r.items() if k != "note"} for r in rs]   # noqa: E731
+    assert strip(local) == strip(rows)
+
+
+def test_the_judge_fails_an_ecu_that_ignores_faults(tmp_path, monkeypatch):
+    """Sabotage: safety-relevant faults no longer disable the bridge. The campaign must say so."""
+    monkeypatch.setattr(ecu, "SAFETY_RELEVANT", 0)
+    res = faults.campaign(tmp_path, in_process=True, names=["checksum", "adc_stuck_rail",
+                                                            "unknown_id"])
+    by = {r.fault: r for r in res}
+    assert not by["checksum"].detected and not by["adc_stuck_rail"].detected
+    assert by["unknown_id"].detected                  # not safety-relevant: unaffected
+    assert not faults.passed(res)
+
+
+def test_cli_subset_and_bad_names(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "hil", "faults", "--in-process", "--only",
+                           "invalid_mode,gains_nan", "--out", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "2/2 detected, 0 crashed" in proc.stdout
+    rows = json.loads((tmp_path / "faults.json").read_text())
+    assert [r["fault"] for r in rows] == ["invalid_mode", "gains_nan"]
+    proc = subprocess.run([sys.executable, "-m", "hil", "faults", "--only", "nope"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "unknown fault(s) nope" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_realtime_ecu_detects_a_silent_plant_and_tells_the_driver(tmp_path):
+    """Realtime pacing: the plant process is stopped (SIGSTOP) for 0.3 s. The ECU's own timer
+    keeps ticking: it disables the bridge, names the timeout and keeps sending its status."""
+    sup = subprocess.Popen([sys.executable, "-m", "hil", "run", "--out", str(tmp_path),
+                            "--route", str(ROUTES / "refusal.toml"), "--mode", "comfort",
+                            "--pace", "realtime", "--duration", "6", "--json"],
+                           cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    plant = None
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and plant is None:
+        kids = {pid: cmdline(pid) for pid in children(sup.pid)}
+        plant = next((pid for pid, c in kids.items() if " plant " in c), None)
+        time.sleep(0.1)
+    assert plant is not None, "the bench did not start"
+    time.sleep(2.5)
+    t_stop = time.time()
+    os.kill(plant, signal.SIGSTOP)                     # our own child, by PID
+    time.sleep(0.3)
+    os.kill(plant, signal.SIGCONT)
+    out, err = sup.communicate(timeout=120)
+    assert sup.returncode == 0, err[-2000:]
+    ecu_sum = json.loads((tmp_path / "ecu.json").read_text())
+    assert ecu_sum["frame_faults"].get("PLANT_SENSORS:missing", 0) >= 100
+    codec = Codec()
+    frames = read_log(tmp_path / "bus.log")
+    gap = [f for f in frames if t_stop + 0.05 < f[0] < t_stop + 0.25]
+    assert gap and not any(f[1] == ID["PLANT_SENSORS"] for f in gap)
+    status = [codec.decode(f[1], f[2]).signals for f in gap if f[1] == ID["ECU_STATUS"]]
+    cmds = [codec.decode(f[1], f[2]).signals for f in gap if f[1] == ID["ACTUATOR_CMD"]]
+    # the ECU keeps ticking on its own timer (183 commands in the 0.2 s when idle here; the
+    # rate under load is a benchmark matter, this checks that the timer runs at all)
+    assert len(status) >= 5 and len(cmds) >= 50
+    assert all(int(s["FAULTS"]) & safety.FAULT_TIMEOUT and s["REASON"] == 2 for s in status)
+    assert all(c["ENABLE"] == 0 and c["DUTY"] == 0 for c in cmds)
+    # and the bench recovered: active control again afterwards
+    later = [codec.decode(f[1], f[2]).signals for f in frames
+             if t_stop + 1.0 < f[0] < t_stop + 2.0 and f[1] == ID["ACTUATOR_CMD"]]
+    assert later and any(c["ENABLE"] for c in later)
