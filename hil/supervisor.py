@@ -120,7 +120,9 @@ class Logger(threading.Thread):
                 if msg is None:
                     continue
                 fid, data = msg.arbitration_id, bytes(msg.data)
-                ts = self.clock.stamp(fid) if self.clock else (msg.timestamp or time.time())
+                # realtime: the receive time here (candump semantics; senders' own stamps
+                # interleave out of order when two nodes send independently)
+                ts = self.clock.stamp(fid) if self.clock else time.time()
                 self.log.write(fid, data, ts)
                 if fid == ID["PLANT_SENSORS"]:
                     self.ticks += 1
