@@ -15,6 +15,7 @@ adaptation off this is exactly a linear Kalman filter (tested against filterpy).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,29 +43,37 @@ def init(params: AkfParams) -> AkfState:
 R_CEILING = 1e8   # largest R-hat eigenvalue, in units of the floor
 
 
-def guard_r(R: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, bool]:
+def guard_r(R: np.ndarray, floor: np.ndarray,
+            scale: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
     """Symmetrise R and bound it: in coordinates scaled by sqrt(floor) (so channels of very
     different units compare), every eigenvalue is clipped into [1, R_CEILING]. The result is
     positive definite with R >= diag(floor) (to rounding, relative to the ceiling).
-    Non-finite R falls back to diag(floor)."""
-    if not np.all(np.isfinite(R)):
+    Non-finite R falls back to diag(floor). ``scale``: outer(sqrt(floor), sqrt(floor)), when
+    the caller has it."""
+    Rs = R + R.T
+    if not math.isfinite(float(Rs.sum())):   # a NaN or inf anywhere (finite R sums finite)
         return np.diag(floor).astype(float), True
-    s = np.sqrt(floor)
-    Rn = 0.5 * (R + R.T) / np.outer(s, s)
-    if np.trace(Rn) <= R_CEILING and _psd_shifted(Rn):
-        return 0.5 * (R + R.T), False
+    if scale is None:
+        s = np.sqrt(floor)
+        scale = np.outer(s, s)
+    Rs *= 0.5
+    Rn = Rs / scale
+    if _psd_shifted(Rn):   # (implies trace >= n; the ceiling is checked inside)
+        return Rs, False
     w, V = np.linalg.eigh(Rn)
     w = np.clip(w, 1.0, R_CEILING)
-    return ((V * w) @ V.T) * np.outer(s, s), True
+    return ((V * w) @ V.T) * scale, True
 
 
 def _psd_shifted(Rn: np.ndarray) -> bool:
-    """Is Rn - I positive semi-definite? All principal minors >= 0, in plain float arithmetic
-    for the 2x2 and 3x3 cases the ECU has (a numpy call per minor costs more than the filter
-    update); other sizes use the eigenvalues."""
+    """Is Rn - I positive semi-definite with trace(Rn) <= R_CEILING? All principal minors
+    >= 0, in plain float arithmetic for the 2x2 and 3x3 cases the ECU has (a numpy call per
+    minor costs more than the filter update); other sizes use the eigenvalues."""
     n = Rn.shape[0]
     if n == 3:
         (a, b, c), (_, e, f), (_, _, i) = Rn.tolist()
+        if a + e + i > R_CEILING:
+            return False
         a, e, i = a - 1.0, e - 1.0, i - 1.0
         if a < 0.0 or e < 0.0 or i < 0.0:
             return False
@@ -73,9 +82,45 @@ def _psd_shifted(Rn: np.ndarray) -> bool:
         return a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c) >= 0.0
     if n == 2:
         (a, b), (_, e) = Rn.tolist()
+        if a + e > R_CEILING:
+            return False
         a, e = a - 1.0, e - 1.0
         return a >= 0.0 and e >= 0.0 and a * e - b * b >= 0.0
-    return bool(np.linalg.eigvalsh(Rn - np.eye(n))[0] >= 0.0)
+    return bool(np.trace(Rn) <= R_CEILING and np.linalg.eigvalsh(Rn - np.eye(n))[0] >= 0.0)
+
+
+def _solve_sym(S: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """S^-1 B for the symmetric positive definite innovation covariance S (the guard keeps it
+    well conditioned): the adjugate in plain floats for 3x3 and 2x2, LAPACK otherwise."""
+    n = S.shape[0]
+    if n == 3:
+        (a, b, c), (_, e, f), (_, _, i) = S.tolist()
+        A, Bc, C = e * i - f * f, c * f - b * i, b * f - c * e
+        E, F, I = a * i - c * c, b * c - a * f, a * e - b * b
+        det = a * A + b * Bc + c * C
+        if det > 0.0 and math.isfinite(det):
+            return np.array(((A, Bc, C), (Bc, E, F), (C, F, I))) @ B / det
+    elif n == 2:
+        (a, b), (_, e) = S.tolist()
+        det = a * e - b * b
+        if det > 0.0 and math.isfinite(det):
+            return np.array(((e, -b), (-b, a))) @ B / det
+    return np.linalg.solve(S, B)
+
+
+_CONST: dict = {}
+
+
+def _consts(params: AkfParams) -> tuple:
+    """Per-calibration constants (computed once): scale of the R guard, H^T."""
+    c = _CONST.get(id(params))
+    if c is None or c[0] is not params:
+        if len(_CONST) > 32:
+            _CONST.clear()
+        s = np.sqrt(params.r_floor)
+        c = (params, np.outer(s, s), np.ascontiguousarray(params.H.T))
+        _CONST[id(params)] = c
+    return c
 
 
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
@@ -98,24 +143,27 @@ def gain(params: AkfParams, st: AkfState, resid: np.ndarray) -> tuple[np.ndarray
     """From the residual z - H x_pred - D u: adapt the noise estimates, compute the gain K,
     update P (Joseph form). Returns (K, eps); the state update is x += K eps."""
     H = params.H
+    _, scale, Ht = _consts(params)
     eps = resid - st.r if params.bias_adaptive else resid
     HP = H @ st.P
-    HPHt = HP @ H.T
+    HPHt = HP @ Ht
     if params.adaptive:
         b = params.forgetting
         d = (1.0 - b) / (1.0 - st.b_pow)   # b_pow = b^(t+1); d = 1 at t = 0
         st.b_pow *= b
         if params.bias_adaptive:
             st.r = (1.0 - d) * st.r + d * resid
-        R = (1.0 - d) * st.R + d * (np.outer(eps, eps) - HPHt)
-        st.R, hit = guard_r(R, params.r_floor)
+        R = (1.0 - d) * st.R + d * (eps[:, None] * eps - HPHt)
+        st.R, hit = guard_r(R, params.r_floor, scale)
         st.guard_hits += int(hit)
     S = HPHt + st.R
-    K = np.linalg.solve(S, HP).T            # P H^T S^-1  (S symmetric)
+    K = _solve_sym(S, HP).T                 # P H^T S^-1  (S symmetric)
     # Joseph form (I-KH) P (I-KH)^T + K R K^T, expanded: P - K HP - (K HP)^T + K S K^T
     KHP = K @ HP
     P = st.P - KHP - KHP.T + K @ S @ K.T
-    st.P = 0.5 * (P + P.T)
+    P += P.T
+    P *= 0.5
+    st.P = P
     st.innovation = eps
     return K, eps
 
