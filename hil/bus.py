@@ -62,8 +62,12 @@ class BusSpec:
     interface: str
     channel: str
 
-    def open(self, timeout_s: float = 5.0) -> can.BusABC:
-        """Open the bus, retrying until ``timeout_s`` (a hub may still be starting)."""
+    def open(self, timeout_s: float = 5.0,
+             can_filters: Optional[list[dict]] = None) -> can.BusABC:
+        """Open the bus, retrying until ``timeout_s`` (a hub may still be starting).
+        ``can_filters`` (python-can's acceptance filters) are applied where the frames are
+        fanned out: in the kernel (socketcan) or in the hub (remote), so frames a node does not
+        read never reach its process."""
         if self.interface in FORBIDDEN_INTERFACES:
             raise BusError(f"interface {self.interface!r} leaves the machine; not allowed")
         if self.interface == "remote":
@@ -71,7 +75,8 @@ class BusSpec:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
-                bus = can.Bus(interface=self.interface, channel=self.channel)
+                bus = can.Bus(interface=self.interface, channel=self.channel,
+                              can_filters=can_filters)
                 if self.interface == "remote":
                     _no_delay(bus)
                 return bus
@@ -105,8 +110,9 @@ def _no_delay(bus: can.BusABC) -> None:
 
 
 class Hub:
-    """python-can's remote server on a ``virtual`` bus, bound to 127.0.0.1, as a child
-    process that only its owner stops (by PID)."""
+    """python-can's remote server on a ``virtual`` bus (``hil.hub``: can_remote with cheaper
+    frame copies), bound to 127.0.0.1, as a child process that only its owner stops (by
+    PID)."""
 
     def __init__(self, port: Optional[int] = None):
         self.port = port or free_port()
@@ -118,8 +124,7 @@ class Hub:
 
     def start(self, timeout_s: float = 10.0) -> "Hub":
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "can_remote", "-i", "virtual", "-c", "hub", "-H", LOOPBACK,
-             "-p", str(self.port), "-v"],
+            [sys.executable, "-m", "hil.hub", "-p", str(self.port)],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             start_new_session=True, preexec_fn=die_with_parent)
         deadline = time.monotonic() + timeout_s
