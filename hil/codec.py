@@ -41,7 +41,7 @@ def declared_raw_range(sig) -> tuple[int, int]:
 
 def to_raw(sig, value: float) -> int:
     """Physical -> raw: round half away from zero, saturate at the declared range, never
-    wrap. NaN -> 0."""
+    wrap. NaN -> 0 (or the nearest end of the declared range)."""
     lo, hi = declared_raw_range(sig)
     if isinstance(value, bool):
         value = int(value)
