@@ -357,9 +357,11 @@ class EcuNode:
             "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable)})
         if self.lockstep and self.awaiting:
             self.held_cmd = cmd
-        else:
-            self.awaiting = 0
+        elif self.lockstep:
             frames.append(cmd)
+        else:                 # realtime: the command is what the plant waits for; send it first
+            self.awaiting = 0
+            frames.insert(0, cmd)
         c = self.cols
         c["road_est"].append(out.road_est_um * 1e-6)
         c["dtd_est"].append(out.dtd_est_um * 1e-6)

@@ -94,7 +94,12 @@ def _ready() -> None:
 
 def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
     """Lockstep: step when the command (and the app's answer) is in. Realtime: hold 1 kHz
-    against the monotonic clock; step with the latest command at each deadline."""
+    against the monotonic clock; step with the latest command at each deadline. A deadline
+    is missed when no command came during the period; ``cmd_rtt_*`` is the time from the
+    sensor frames to the first command after them."""
+    from hil.nodes import ID
+
+    cmd_id = ID["ACTUATOR_CMD"]
     stats: dict = {"pace": pace}
     if pace == "lockstep":
         while not node.done and not stop.flag:
@@ -115,6 +120,7 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
         return stats
     dt = node.dt
     lags = np.zeros(node.n)
+    rtts = np.full(node.n, np.nan)      # sensor frames sent -> first command in, per tick
     t0 = time.monotonic() + 0.01
     k0 = node.k
     while not node.done and not stop.flag:
@@ -127,6 +133,7 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
             pass
         lags[k] = time.monotonic() - target
         _send(bus, node.emit())
+        t_emit = time.monotonic()
         end = target + dt
         while True:
             rem = end - time.monotonic()
@@ -135,6 +142,8 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
             msg = bus.recv(rem)
             if msg is not None:
                 node.on_frame(msg.arbitration_id, bytes(msg.data))
+                if msg.arbitration_id == cmd_id and np.isnan(rtts[k]):
+                    rtts[k] = time.monotonic() - t_emit
         node.step()
     lag = lags[:node.k - k0] * 1e6
     stats.update({
@@ -146,6 +155,12 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
         "lag_max_us": float(lag.max()) if len(lag) else 0.0,
         "overruns": int(np.count_nonzero(lag > dt * 1e6)),
     })
+    rtt = rtts[k0:node.k]
+    rtt = rtt[np.isfinite(rtt)] * 1e6
+    if len(rtt):
+        stats.update({"cmd_rtt_p50_us": float(np.percentile(rtt, 50)),
+                      "cmd_rtt_p99_us": float(np.percentile(rtt, 99)),
+                      "cmd_rtt_max_us": float(rtt.max())})
     return stats
 
 

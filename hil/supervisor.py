@@ -305,7 +305,8 @@ def run(args) -> int:
     if args.pace == "realtime":
         report["bench"]["realtime"] = {k: summaries["plant"][k] for k in (
             "missed_deadlines", "missed_deadline_ratio", "lag_p50_us", "lag_p99_us",
-            "lag_max_us", "overruns")}
+            "lag_max_us", "overruns", "cmd_rtt_p50_us", "cmd_rtt_p99_us", "cmd_rtt_max_us")
+            if k in summaries["plant"]}
     write_outputs(out, report, trace)
     finish(report, None, "report.json", args.json, render_sil)
     if not args.json:
