@@ -115,6 +115,7 @@ class PlantNode:
         self.cmd = (0, False, False)        # duty Q15, regen, enable
         self.cmd_tick = -1                  # tick of the last valid command
         self.cmd_fresh = False              # a command arrived since the last step
+        self.cmd_seq = -1                   # SENSOR_SEQ of the last valid command
         self.bad_cmd_frames = 0
         self.missed_cmds = 0                # steps without a fresh command
         self.fallback_ticks = 0             # steps in the passive fallback
@@ -163,6 +164,7 @@ class PlantNode:
                 s = d.signals
                 self.cmd = (int(s["DUTY"]), bool(s["REGEN"]), bool(s["ENABLE"]))
                 self.cmd_tick = self.k
+                self.cmd_seq = int(s["SENSOR_SEQ"])
             else:
                 self.bad_cmd_frames += 1
         return []
@@ -170,6 +172,11 @@ class PlantNode:
     def ready(self) -> bool:
         """Lockstep: the ECU's command for this tick is in."""
         return self.cmd_fresh
+
+    def answered(self) -> bool:
+        """The last valid command answers this tick's sensor frame (its SENSOR_SEQ is the
+        COUNTER, modulo 4, of the PLANT_SENSORS frame last sent)."""
+        return self.cmd_seq == (self.tx.counters.get("PLANT_SENSORS", 0) - 1) & 0x3
 
     def step(self) -> None:
         k, a, t = self.k, self.active, self.twin
@@ -251,6 +258,7 @@ class EcuNode:
         self.awaiting = 0                   # MODE_RECOMMEND sent, answer not yet received
         self.held_cmd: Optional[Frame] = None   # lockstep: ACTUATOR_CMD waiting for it
         self.link_faults = 0
+        self.seq = 3                        # COUNTER mod 4 of the sensor frame being answered
         self.status_faults = 0              # OR of the fault words since the last ECU_STATUS
         self.frame_faults: Counter = Counter()
         self.last_rec = None
@@ -278,6 +286,8 @@ class EcuNode:
                               spec=self.spec_speed if fid == ID["VEHICLE_SPEED"] else None)
         if fid == ID["PLANT_SENSORS"]:
             self.pending.append(d.signals if d.ok else None)
+            if len(data) > 6:       # the COUNTER as sent, even of a corrupted frame
+                self.seq = (data[6] >> 4) & 0x3
             if not d.ok:
                 self._note(d, "PLANT_SENSORS")
         elif fid == ID["VEHICLE_SPEED"]:
@@ -310,6 +320,7 @@ class EcuNode:
         k = self.k
         s = self.pending.popleft()
         if s is MISSING:
+            self.seq = (self.seq + 1) & 0x3
             s = None
             self.link_faults |= safety.FAULT_TIMEOUT
             self.frame_faults["PLANT_SENSORS:missing"] += 1
@@ -354,7 +365,8 @@ class EcuNode:
                 "ACTIVE_MODE": out.active_mode, "REASON": out.reason,
                 "OVERRIDE": int(out.override)}))
         cmd = self.tx.frame("ACTUATOR_CMD", {
-            "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable)})
+            "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable),
+            "SENSOR_SEQ": self.seq})
         if self.lockstep and self.awaiting:
             self.held_cmd = cmd
         elif self.lockstep:

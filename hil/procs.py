@@ -94,9 +94,10 @@ def _ready() -> None:
 
 def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
     """Lockstep: step when the command (and the app's answer) is in. Realtime: hold 1 kHz
-    against the monotonic clock; step with the latest command at each deadline. A deadline
-    is missed when no command came during the period; ``cmd_rtt_*`` is the time from the
-    sensor frames to the first command after them."""
+    against the monotonic clock: tick k's frames go out at its deadline; the plant steps as
+    soon as the command answering them is in (ACTUATOR_CMD.SENSOR_SEQ) and builds the next
+    frames, or, a missed deadline, at the next deadline with the latest valid command.
+    ``cmd_rtt_*``: from the sensor frames to their command."""
     from hil.nodes import ID
 
     cmd_id = ID["ACTUATOR_CMD"]
@@ -120,11 +121,15 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
         return stats
     dt = node.dt
     lags = np.zeros(node.n)
-    rtts = np.full(node.n, np.nan)      # sensor frames sent -> first command in, per tick
+    rtts = np.full(node.n, np.nan)      # sensor frames sent -> their command in, per tick
     t0 = time.monotonic() + 0.01
     k0 = node.k
+    missed = 0
+    frames = None                       # the next tick's frames, built ahead of its deadline
     while not node.done and not stop.flag:
         k = node.k
+        if frames is None:
+            frames = node.emit()
         target = t0 + (k - k0) * dt
         now = time.monotonic()
         if target - now > 0.0005:
@@ -132,24 +137,40 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
         while time.monotonic() < target:
             pass
         lags[k] = time.monotonic() - target
-        _send(bus, node.emit())
+        _send(bus, frames)
+        frames = None
         t_emit = time.monotonic()
         end = target + dt
+        stepped = False
         while True:
             rem = end - time.monotonic()
             if rem <= 0:
                 break
             msg = bus.recv(rem)
-            if msg is not None:
-                node.on_frame(msg.arbitration_id, bytes(msg.data))
-                if msg.arbitration_id == cmd_id and np.isnan(rtts[k]):
-                    rtts[k] = time.monotonic() - t_emit
-        node.step()
+            if msg is None:
+                continue
+            node.on_frame(msg.arbitration_id, bytes(msg.data))
+            if msg.arbitration_id == cmd_id and node.answered():
+                # the answer to this tick's sensor frame (SENSOR_SEQ): the period's physics
+                # is known, so step now and build the next frames; the deadline only sends
+                rtts[k] = time.monotonic() - t_emit
+                node.step()
+                stepped = True
+                if not node.done:
+                    frames = node.emit()
+                # take what is already queued (late commands of earlier ticks), so no
+                # backlog builds up in the socket; then wait for the next deadline
+                while (msg := bus.recv(0)) is not None:
+                    node.on_frame(msg.arbitration_id, bytes(msg.data))
+                break
+        if not stepped:                 # no answer in time: the latest valid command
+            missed += 1
+            node.step()
     lag = lags[:node.k - k0] * 1e6
     stats.update({
         "ticks": int(len(lag)),
-        "missed_deadlines": node.missed_cmds,
-        "missed_deadline_ratio": node.missed_cmds / max(1, len(lag)),
+        "missed_deadlines": missed,
+        "missed_deadline_ratio": missed / max(1, len(lag)),
         "lag_p50_us": float(np.percentile(lag, 50)) if len(lag) else 0.0,
         "lag_p99_us": float(np.percentile(lag, 99)) if len(lag) else 0.0,
         "lag_max_us": float(lag.max()) if len(lag) else 0.0,

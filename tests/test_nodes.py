@@ -129,3 +129,37 @@ def test_driver_script_files(tmp_path):
         bad.write_text(text)
         with pytest.raises(ConfigError, match=key.replace("[", r"\[").replace("]", r"\]")):
             load_driver_script(bad)
+
+
+def test_every_command_names_the_sensor_frame_it_answers():
+    """ACTUATOR_CMD.SENSOR_SEQ = the answered PLANT_SENSORS COUNTER modulo 4 (a tick without a
+    sensor frame: the next expected one), and the plant recognises the answer to its latest
+    frame (realtime pacing steps on it)."""
+    frames = []
+    sil.run(CFG, constant_route("B", 20.0, 0.5), "comfort", 1,
+            on_frame=lambda fid, data: frames.append((fid, data)))
+    seq, n = None, 0
+    for fid, data in frames:
+        d = CODEC.decode(fid, data, scaling=False).signals
+        if fid == ID["PLANT_SENSORS"]:
+            seq = d["COUNTER"] & 3
+        elif fid == ID["ACTUATOR_CMD"]:
+            assert d["SENSOR_SEQ"] == seq
+            n += 1
+    assert n == 500
+    plant = PlantNode(CFG, constant_route("B", 20.0, 1.0), 1, CODEC)
+    ecu_node = EcuNode(sil.ecu_params(CFG, "comfort"), CODEC, lockstep=False)
+
+    def command():
+        return next(f for f in ecu_node.tick() if f[0] == ID["ACTUATOR_CMD"])
+
+    for fid, data in plant.emit():
+        ecu_node.on_frame(fid, data)
+    plant.on_frame(*command())
+    assert plant.answered()             # the answer to the frame just sent
+    plant.step()
+    plant.emit()                        # a new frame; the ECU has not answered it yet
+    assert not plant.answered()
+    ecu_node.timer_tick()               # ... and it never arrives: the ECU's timer ticks
+    plant.on_frame(*command())
+    assert plant.answered()             # a timer tick answers the expected frame
