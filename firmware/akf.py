@@ -32,12 +32,16 @@ class AkfState:
     b_pow: float              # b^(t+1)
     innovation: np.ndarray
     guard_hits: int = 0       # how often the R-hat guard acted
+    r_scale: np.ndarray | None = None   # outer(sqrt(r_floor), sqrt(r_floor)) (the guard's)
+    Ht: np.ndarray | None = None        # H^T, contiguous
 
 
 def init(params: AkfParams) -> AkfState:
     m = params.H.shape[0]
+    s = np.sqrt(params.r_floor)
     return AkfState(x=np.zeros(5), P=params.p0.copy(), R=params.r0.copy(), r=np.zeros(m),
-                    b_pow=params.forgetting, innovation=np.zeros(m))
+                    b_pow=params.forgetting, innovation=np.zeros(m), r_scale=np.outer(s, s),
+                    Ht=np.ascontiguousarray(params.H.T))
 
 
 R_CEILING = 1e8   # largest R-hat eigenvalue, in units of the floor
@@ -108,21 +112,6 @@ def _solve_sym(S: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.linalg.solve(S, B)
 
 
-_CONST: dict = {}
-
-
-def _consts(params: AkfParams) -> tuple:
-    """Per-calibration constants (computed once): scale of the R guard, H^T."""
-    c = _CONST.get(id(params))
-    if c is None or c[0] is not params:
-        if len(_CONST) > 32:
-            _CONST.clear()
-        s = np.sqrt(params.r_floor)
-        c = (params, np.outer(s, s), np.ascontiguousarray(params.H.T))
-        _CONST[id(params)] = c
-    return c
-
-
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
     st.x = params.phi @ st.x + params.gamma * u
     predict_cov(params, st, road_intensity)
@@ -142,8 +131,7 @@ def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
 def gain(params: AkfParams, st: AkfState, resid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """From the residual z - H x_pred - D u: adapt the noise estimates, compute the gain K,
     update P (Joseph form). Returns (K, eps); the state update is x += K eps."""
-    H = params.H
-    _, scale, Ht = _consts(params)
+    H, Ht = params.H, st.Ht
     eps = resid - st.r if params.bias_adaptive else resid
     HP = H @ st.P
     HPHt = HP @ Ht
@@ -154,7 +142,7 @@ def gain(params: AkfParams, st: AkfState, resid: np.ndarray) -> tuple[np.ndarray
         if params.bias_adaptive:
             st.r = (1.0 - d) * st.r + d * resid
         R = (1.0 - d) * st.R + d * (eps[:, None] * eps - HPHt)
-        st.R, hit = guard_r(R, params.r_floor, scale)
+        st.R, hit = guard_r(R, params.r_floor, st.r_scale)
         st.guard_hits += int(hit)
     S = HPHt + st.R
     K = _solve_sym(S, HP).T                 # P H^T S^-1  (S symmetric)

@@ -47,6 +47,7 @@ CAMPAIGN_SPEED_MPS = 20.0
 UNKNOWN_FRAME_ID = 0x123        # not in the DBC
 OUT_OF_RANGE_SPEED_RAW = 7500   # 75 m/s: inside 13 bits, outside the declared [0, 70] m/s
 INVALID_MODE = 6                # REQ_MODE 6: no such mode
+GAP_TICKS = 700                 # fault-free ticks after each fault (recovery)
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,7 @@ class Window:
 
 
 def schedule(names: Optional[list[str]] = None, warmup: int = 1500,
-             gap: int = 700) -> list[Window]:
+             gap: int = GAP_TICKS) -> list[Window]:
     """The bus faults one after the other: a warm-up (estimator and grade settle), then each
     fault's window followed by a fault-free gap (recovery)."""
     out, k = [], warmup
@@ -122,7 +123,7 @@ def schedule(names: Optional[list[str]] = None, warmup: int = 1500,
     return out
 
 
-def campaign_ticks(windows: list[Window], gap: int = 700) -> int:
+def campaign_ticks(windows: list[Window], gap: int = GAP_TICKS) -> int:
     return (windows[-1].start + windows[-1].ticks + gap) if windows else 0
 
 
@@ -181,7 +182,7 @@ class Injector:
             dropped = [f for f in out if name == "bus_silence" or f[0] == sensors]
             out = [f for f in out if f not in dropped]
             for fid, _ in dropped:
-                plant.tx.sent[_name_of(fid)] -= 1
+                plant.tx.sent[_name_of(codec, fid)] -= 1
             if self.lockstep:   # the ECU's timer still ticks: say so on the simulated bus
                 out.append(plant.tx.frame("SIM_TICK", {"TICK": k & 0xFF}))
             self._mark(name, k, len(dropped))
@@ -239,15 +240,15 @@ class Injector:
             self._mark(w.name, app.t)
 
 
-def _name_of(fid: int) -> str:
-    return next(n for n, i in ID.items() if i == fid)
+def _name_of(codec, fid: int) -> str:
+    return codec.db.get_message_by_frame_id(fid).name
 
 
 def _reencode(codec, frame: Frame, **raw_over) -> Frame:
     """The same frame with some raw signal values replaced, COUNTER kept, CHECKSUM resealed
     (a sensor or sender fault, not a transmission error)."""
     fid, data = frame
-    name = _name_of(fid)
+    name = _name_of(codec, fid)
     raw = dict(codec.decode(fid, data, scaling=False).signals)
     raw.update(raw_over)
     return fid, codec.encode_raw(name, raw, raw.get("COUNTER", 0))

@@ -268,12 +268,8 @@ class EcuNode:
 
     def _note(self, d, name: str) -> None:
         self.link_faults |= d.faults
-        for bit, label in ((safety.FAULT_DLC, "dlc"), (safety.FAULT_CHECKSUM, "checksum"),
-                           (safety.FAULT_COUNTER, "counter"),
-                           (safety.FAULT_UNKNOWN_ID, "unknown_id"), (safety.FAULT_RATE, "rate"),
-                           (safety.FAULT_RANGE, "range")):
-            if d.faults & bit:
-                self.frame_faults[f"{name}:{label}"] += 1
+        for label in ecu.fault_names(d.faults):
+            self.frame_faults[f"{name}:{label}"] += 1
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
         if fid in self.ignore:
@@ -286,8 +282,9 @@ class EcuNode:
                               spec=self.spec_speed if fid == ID["VEHICLE_SPEED"] else None)
         if fid == ID["PLANT_SENSORS"]:
             self.pending.append(d.signals if d.ok else None)
-            if len(data) > 6:       # the COUNTER as sent, even of a corrupted frame
-                self.seq = (data[6] >> 4) & 0x3
+            spec = self.codec.specs[fid]
+            if len(data) > spec.counter_bit // 8:   # the COUNTER as sent, even when corrupted
+                self.seq = safety.counter_of(spec, data) & 0x3
             if not d.ok:
                 self._note(d, "PLANT_SENSORS")
         elif fid == ID["VEHICLE_SPEED"]:

@@ -257,9 +257,10 @@ def _injector(args, node: str):
 
 def _tell_driver(t: float, faults: int, reason: int) -> None:
     from firmware.ecu import fault_names
+    from firmware.modes import REASON_FAULT
 
     what = ", ".join(fault_names(faults)) or "none"
-    state = "  -> fail-safe (passive damping)" if reason == 2 else ""
+    state = "  -> fail-safe (passive damping)" if reason == REASON_FAULT else ""
     print(f"app: t={t:7.2f} s  ECU faults: {what}{state}", file=sys.stderr, flush=True)
 
 
