@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import expm
 
+from firmware.jit import njit
 from hil.config import VehicleConfig
 from hil.model import mechanics, van_loan_integral
 
@@ -166,6 +167,10 @@ class QuarterCarPlant:
         self.tire_lifted = False
         self.current_limited_steps = 0
         self._last_g = self._eta
+        # the kernels' parameters, in the order of the P_* indices
+        self._pp = np.array([self._ms, self._mt, self._ks, self._cs, self._kt, self._K, self._b,
+                             self._eta, self._clear, self._kb, self._tyre_load,
+                             float(self._bump), float(self._lift), self._imax])
 
     # -- model -----------------------------------------------------------------------------
     def _matrix(self, enabled: bool, motoring: bool) -> np.ndarray:
@@ -227,23 +232,7 @@ class QuarterCarPlant:
         return 0.5 * self._L * self.x[4] ** 2
 
     def _nonlinear_forces(self) -> tuple[float, float, bool, bool]:
-        fb = fw = 0.0
-        contact = lifted = False
-        _, _, zs, zt, _ = self.x
-        if self._bump:
-            d = zs - zt
-            over = abs(d) - self._clear
-            if over > 0.0:
-                f = -self._kb * over * math.copysign(1.0, d)
-                fb += f
-                fw -= f
-                contact = True
-        if self._lift:
-            total = self._tyre_load + self._kt * (self.zf - zt)
-            if total < 0.0:
-                fw -= total
-                lifted = True
-        return fb, fw, contact, lifted
+        return _nonlinear(self.x, self.zf, self._pp)
 
     def _motoring(self) -> bool:
         return self._K * self.x[4] * (self.x[0] - self.x[1]) >= 0.0
@@ -252,18 +241,11 @@ class QuarterCarPlant:
         """Force of the actuator on the body (screw output minus its friction)."""
         if not self.has_actuator:
             return 0.0
-        g = self._eta if self._motoring() else 1.0 / self._eta
-        return g * self._K * self.x[4] - self._b * (self.x[0] - self.x[1])
+        return _actuator_force(self.x, self._pp)
 
     def accelerations(self) -> tuple[float, float]:
         """Body and wheel acceleration now (m/s^2), with the current road height."""
-        vs, vt, zs, zt, _ = self.x
-        fb, fw, _, _ = self._nonlinear_forces()
-        f_act = self.actuator_force_n()
-        spring_damper = self._ks * (zs - zt) + self._cs * (vs - vt)
-        ba = (-spring_damper + f_act + fb) / self._ms
-        wa = (spring_damper - f_act - self._kt * (zt - self.zf) + fw) / self._mt
-        return ba, wa
+        return _accelerations(self.x, self.zf, self._pp, self.has_actuator)
 
     @property
     def susp_defl_m(self) -> float:
@@ -295,36 +277,21 @@ class QuarterCarPlant:
         if not enabled and self.x[4] != 0.0:
             ledger.flyback_loss_j += self.inductor_energy_j()
             self.x[4] = 0.0
-        fb, fw, contact, lifted = self._nonlinear_forces()
+        motoring = self._motoring() if enabled else True
+        disc = self._disc[(enabled, motoring)]
+        v_dc = ap.storage_voltage_v if regen else ap.bus_voltage_v
+        volt = duty * v_dc if enabled else 0.0
+        new, zeta, limited, contact, lifted = _step(disc.phi, self.x, self.zf, float(zf_next),
+                                                    volt, v_dc, enabled, self.dt, self._pp)
         if contact and not self.in_bump_contact:
             self.bump_contacts += 1
         if lifted and not self.tire_lifted:
             self.lift_off_events += 1
         self.in_bump_contact, self.tire_lifted = contact, lifted
-        disc = self._disc[(enabled, self._motoring() if enabled else True)]
-        v_dc = ap.storage_voltage_v if regen else ap.bus_voltage_v
-        volt = duty * v_dc if enabled else 0.0
-        zeta = np.empty(N_AUG)
-        zeta[:5] = self.x
-        zeta[ZF] = self.zf
-        zeta[VOLT] = volt
-        zeta[ZFDOT] = (zf_next - self.zf) / self.dt
-        zeta[FB] = fb
-        zeta[FW] = fw
-        if enabled:
-            # hardware current limit: the end-of-step current is affine in the voltage
-            phi_i = disc.phi[CUR]
-            base = float(phi_i @ zeta) - phi_i[VOLT] * volt
-            i_end = base + phi_i[VOLT] * volt
-            if abs(i_end) > self._imax:
-                limited = (math.copysign(self._imax, i_end) - base) / phi_i[VOLT]
-                volt = min(v_dc, max(-v_dc, limited))
-                zeta[VOLT] = volt
-                self.current_limited_steps += 1
-        new = disc.phi @ zeta
+        self.current_limited_steps += int(limited)
         if self.track_ledger:
-            energies = disc.flows @ np.outer(zeta, zeta).ravel()
-            road_in, nl_work, dc, cu, damper, fric, em, act = energies
+            energies = _quadratic_forms(disc.flows, zeta)
+            road_in, nl_work, dc, cu, damper, fric, em, act = energies.tolist()
             ledger.road_in_j += road_in
             ledger.nonlinear_work_j += nl_work
             if regen:
@@ -337,8 +304,144 @@ class QuarterCarPlant:
             ledger.electromagnetic_j += em
             ledger.actuator_mech_j += act
             ledger.screw_loss_j += em - act
-        self.x = new[:5]
+        self.x = new
         self.zf = float(zf_next)
         if self.track_ledger:
             ledger.final_mech_j = self.mech_energy_j()
             ledger.final_inductor_j = self.inductor_energy_j()
+
+    def run_passive(self, zf_next: np.ndarray) -> dict:
+        """Step the plant with the bridge open through the road heights ``zf_next`` in one
+        compiled loop; the same arithmetic as that many ``step(z, enable=False)`` calls (the
+        passive twin rides the whole road this way). Returns, per step, what ``step`` then
+        ``accelerations`` give: ba, sws, dtd, vrel (and bump contact / lift-off flags)."""
+        if self.track_ledger:
+            raise ValueError("run_passive keeps no energy ledger")
+        if self.x[4] != 0.0:            # the bridge opens: the inductor's energy is dumped
+            self.x[4] = 0.0
+        n = len(zf_next)
+        out = np.empty((4, n))
+        flags = np.empty((2, n), dtype=np.bool_)
+        self.x, self.zf, contacts, lifts = _run_open(
+            self._disc[(False, True)].phi, self.x, self.zf, np.asarray(zf_next, dtype=float),
+            self.dt, self._pp, self.has_actuator, self.in_bump_contact, self.tire_lifted, out,
+            flags)
+        self.bump_contacts += contacts
+        self.lift_off_events += lifts
+        if n:
+            self.in_bump_contact, self.tire_lifted = bool(flags[0, -1]), bool(flags[1, -1])
+        return {"ba": out[0], "sws": out[1], "dtd": out[2], "vrel": out[3],
+                "contact": flags[0], "lifted": flags[1]}
+
+
+# -- compiled kernels (firmware.jit: the same bits interpreted) ------------------------------
+P_MS, P_MT, P_KS, P_CS, P_KT, P_K, P_B, P_ETA, P_CLEAR, P_KB, P_LOAD, P_BUMP, P_LIFT, P_IMAX = \
+    range(14)
+
+
+@njit
+def _nonlinear(x, zf, pp):
+    """Bump-stop force on the body and the wheel, tyre lift-off force on the wheel."""
+    fb = fw = 0.0
+    contact = lifted = False
+    zs, zt = x[2], x[3]
+    if pp[P_BUMP] != 0.0:
+        d = zs - zt
+        over = abs(d) - pp[P_CLEAR]
+        if over > 0.0:
+            f = -pp[P_KB] * over * math.copysign(1.0, d)
+            fb += f
+            fw -= f
+            contact = True
+    if pp[P_LIFT] != 0.0:
+        total = pp[P_LOAD] + pp[P_KT] * (zf - zt)
+        if total < 0.0:
+            fw -= total
+            lifted = True
+    return fb, fw, contact, lifted
+
+
+@njit
+def _actuator_force(x, pp):
+    vrel = x[0] - x[1]
+    g = pp[P_ETA] if pp[P_K] * x[4] * vrel >= 0.0 else 1.0 / pp[P_ETA]
+    return g * pp[P_K] * x[4] - pp[P_B] * vrel
+
+
+@njit
+def _accelerations(x, zf, pp, has_actuator):
+    vs, vt, zs, zt = x[0], x[1], x[2], x[3]
+    fb, fw, _, _ = _nonlinear(x, zf, pp)
+    f_act = _actuator_force(x, pp) if has_actuator else 0.0
+    spring_damper = pp[P_KS] * (zs - zt) + pp[P_CS] * (vs - vt)
+    ba = (-spring_damper + f_act + fb) / pp[P_MS]
+    wa = (spring_damper - f_act - pp[P_KT] * (zt - zf) + fw) / pp[P_MT]
+    return ba, wa
+
+
+@njit
+def _step(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp):
+    """One exact step: zeta(t+dt) = phi zeta(t), with the bridge's current limit. Returns
+    (x after the step, zeta over the step, current limited, bump contact, tyre lifted)."""
+    fb, fw, contact, lifted = _nonlinear(x, zf, pp)
+    zeta = np.empty(N_AUG)
+    for i in range(5):
+        zeta[i] = x[i]
+    zeta[ZF] = zf
+    zeta[VOLT] = volt
+    zeta[ZFDOT] = (zf_next - zf) / dt
+    zeta[FB] = fb
+    zeta[FW] = fw
+    limited = False
+    if enabled:
+        # hardware current limit: the end-of-step current is affine in the voltage
+        base = 0.0
+        for j in range(N_AUG):
+            base += phi[CUR, j] * zeta[j]
+        base -= phi[CUR, VOLT] * volt
+        i_end = base + phi[CUR, VOLT] * volt
+        if abs(i_end) > pp[P_IMAX]:
+            lim = (math.copysign(pp[P_IMAX], i_end) - base) / phi[CUR, VOLT]
+            zeta[VOLT] = min(v_dc, max(-v_dc, lim))
+            limited = True
+    new = np.empty(5)
+    for i in range(5):
+        s = 0.0
+        for j in range(N_AUG):
+            s += phi[i, j] * zeta[j]
+        new[i] = s
+    return new, zeta, limited, contact, lifted
+
+
+@njit
+def _quadratic_forms(flows, zeta):
+    """flows @ outer(zeta, zeta).ravel(): the step's energy flows."""
+    n = zeta.shape[0]
+    out = np.empty(flows.shape[0])
+    for f in range(flows.shape[0]):
+        s = 0.0
+        for a in range(n):
+            for b in range(n):
+                s += flows[f, a * n + b] * (zeta[a] * zeta[b])
+        out[f] = s
+    return out
+
+
+@njit
+def _run_open(phi, x, zf, zf_next, dt, pp, has_actuator, contact, lifted, out, flags):
+    contacts = lifts = 0
+    for k in range(zf_next.shape[0]):
+        x, _, _, c, li = _step(phi, x, zf, zf_next[k], 0.0, 0.0, False, dt, pp)
+        if c and not contact:
+            contacts += 1
+        if li and not lifted:
+            lifts += 1
+        contact, lifted = c, li
+        zf = zf_next[k]
+        out[0, k], _ = _accelerations(x, zf, pp, has_actuator)
+        out[1, k] = x[2] - x[3]
+        out[2, k] = x[3] - zf
+        out[3, k] = x[0] - x[1]
+        flags[0, k] = c
+        flags[1, k] = li
+    return x, zf, contacts, lifts

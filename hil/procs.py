@@ -312,6 +312,9 @@ def main(role: str, args) -> int:
         return EXIT_BUS
     code = 0
     stats: dict = {}
+    from hil.nodes import warm_up
+
+    warm_up(node)
     quiet_gc()
     try:
         _ready()

@@ -11,7 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from firmware.jit import njit
 from hil.config import SENSOR_NAMES, SensorChannel, SensorParams
+
+NOISE_BLOCK = 256   # ticks of noise drawn at once (the same stream as one draw per tick)
 
 
 def round_half_away(x: float) -> int:
@@ -49,18 +52,49 @@ class SensorReading:
 
 
 class SensorSuite:
-    """All sensors of the corner, with one seeded generator for their noise."""
+    """All sensors of the corner, with one seeded generator for their noise. The noise is
+    drawn ``NOISE_BLOCK`` samples ahead; numpy's generator fills a block in the order of
+    single draws, so the values are those of one draw per sample."""
 
     def __init__(self, params: SensorParams, rng: np.random.Generator):
         self.params = params
         self.rng = rng
         self._channels = [getattr(params, name) for name in SENSOR_NAMES]
         self._std = np.array([c.noise_std for c in self._channels])
+        self._min = np.array([c.range_min for c in self._channels])
+        self._lsb = np.array([c.lsb for c in self._channels])
+        self._full = np.array([2**c.bits - 1 for c in self._channels], dtype=np.int64)
         self.noise_gain = np.ones(len(SENSOR_NAMES))  # scenario knob: multiply the noise
+        self._noise = np.empty((0, len(SENSOR_NAMES)))
+        self._next = 0
 
     def sample(self, body_accel: float, wheel_accel: float, susp_defl: float,
                motor_current: float, speed: float) -> SensorReading:
-        noise = self.rng.standard_normal(len(self._channels)) * self._std * self.noise_gain
-        values = (body_accel, wheel_accel, susp_defl, motor_current, speed)
-        counts = [to_counts(c, v + n) for c, v, n in zip(self._channels, values, noise)]
-        return SensorReading(*counts)
+        if self._next >= len(self._noise):
+            self._noise = self.rng.standard_normal((NOISE_BLOCK, len(self._channels)))
+            self._next = 0
+        z = self._noise[self._next]
+        self._next += 1
+        counts = _quantise(np.array((body_accel, wheel_accel, susp_defl, motor_current, speed),
+                                    dtype=float), z, self._std, self.noise_gain, self._min,
+                           self._lsb, self._full)
+        return SensorReading(*counts.tolist())
+
+
+@njit
+def _quantise(values, z, std, gain, range_min, lsb, full):
+    """to_counts(channel, value + noise) for every channel (noise = z * std * gain)."""
+    out = np.empty(values.shape[0], dtype=np.int64)
+    for i in range(values.shape[0]):
+        v = values[i] + z[i] * std[i] * gain[i]
+        if math.isnan(v):
+            out[i] = 0
+            continue
+        raw = (v - range_min[i]) / lsb[i]
+        if raw <= 0.0:
+            out[i] = 0
+        elif raw >= full[i]:
+            out[i] = full[i]
+        else:
+            out[i] = int(math.floor(raw + 0.5))
+    return out

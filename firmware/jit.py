@@ -1,0 +1,21 @@
+"""The compiled numeric kernels' decorator: numba's ``njit`` with the project's settings.
+
+Kernels are plain Python over numpy arrays and floats, written as explicit loops in a fixed
+order (no BLAS, whose summation order depends on the CPU), so the compiled code and the same
+source run by the interpreter give the same bits: IEEE double arithmetic, no fast-math, no
+fused multiply-add (``tests/test_jit.py`` runs the SIL both ways and compares the trace
+hashes). ``NUMBA_DISABLE_JIT=1`` runs every kernel in the interpreter.
+
+- ``cache=True``: the machine code is kept beside the source (``__pycache__``), so only the
+  first process after a change compiles;
+- ``error_model="numpy"``: a division by zero gives inf/NaN as in numpy (the callers' NaN
+  checks react) instead of raising.
+"""
+
+from __future__ import annotations
+
+import numba
+
+
+def njit(fn):
+    return numba.njit(cache=True, error_model="numpy", fastmath=False)(fn)
