@@ -118,6 +118,10 @@ def _node_parsers(sub) -> None:
         add_vehicle_argument(p)
         if pace:
             p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep")
+        p.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                       help="SCHED_FIFO priority N (0: normal scheduling; a node's default; "
+                            "hil run passes 50 to the hub and the nodes in realtime pacing "
+                            "unless given)")
 
     p = sub.add_parser("run", help="the bench: hub, ECU, plant and driver app as processes on "
                                    "a CAN bus; bus.log, report.json/.md and figures in --out")
@@ -131,7 +135,7 @@ def _node_parsers(sub) -> None:
     _driver_arguments(p)
     _fixed_argument(p)
     common(p)
-    p.set_defaults(out="out/run")
+    p.set_defaults(out="out/run", rt_priority=None)
     add_json_argument(p)
 
     p = sub.add_parser("plant", help="the plant simulator node (owns simulated time; start it "

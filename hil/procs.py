@@ -20,7 +20,7 @@ from typing import Optional
 import can
 import numpy as np
 
-from hil.bus import BusError, resolve
+from hil.bus import BusError, resolve, set_rt_priority
 
 try:
     from can_remote.websocket import WebsocketClosed
@@ -271,6 +271,9 @@ def main(role: str, args) -> int:
 
     out = Path(args.out) if args.out else None
     stop = Stop()
+    sched = set_rt_priority(getattr(args, "rt_priority", 0) or 0)
+    if "refused" in sched:
+        print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
     codec = Codec()
     cfg = vehicle_or_exit(args.vehicle)
     try:
@@ -334,6 +337,7 @@ def main(role: str, args) -> int:
     finally:
         summary = node.summary()
         summary.update(stats)
+        summary["sched"] = sched
         summary["stopped"] = stop.flag
         summary["exit_code"] = code
         _write(out, role, summary, node.trace() if hasattr(node, "trace") else None)

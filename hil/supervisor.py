@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from hil.bus import BusError, BusSpec, Hub, die_with_parent, resolve
+from hil.bus import RT_PRIORITY, BusError, BusSpec, Hub, die_with_parent, resolve
 from hil.buslog import BusLogFile
 from hil.codec import Codec
 from hil.nodes import ID, LockstepClock
@@ -216,8 +216,11 @@ def run(args) -> int:
     try:
         spec, needs_hub = resolve(getattr(args, "interface", None),
                                   getattr(args, "channel", None))
+        rt = getattr(args, "rt_priority", None)
+        if rt is None:
+            rt = RT_PRIORITY if args.pace == "realtime" else 0
         if needs_hub:
-            hub = Hub().start()
+            hub = Hub(rt_priority=rt).start()
             spec = BusSpec("remote", hub.url)
         assert spec is not None
         say(f"bus: {spec.interface} {spec.channel}  (watch: python -m can.viewer -i "
@@ -227,7 +230,7 @@ def run(args) -> int:
                         Codec())
         logger.start()
         bus_args = ["-i", spec.interface, "-c", spec.channel]
-        common = [*bus_args, "--out", str(out), "--pace", args.pace]
+        common = [*bus_args, "--out", str(out), "--pace", args.pace, "--rt-priority", str(rt)]
         if args.vehicle:
             common += ["--vehicle", args.vehicle]
         ecu_argv = [*common, "--mode", args.mode]
@@ -305,7 +308,8 @@ def run(args) -> int:
     if args.pace == "realtime":
         report["bench"]["realtime"] = {k: summaries["plant"][k] for k in (
             "missed_deadlines", "missed_deadline_ratio", "lag_p50_us", "lag_p99_us",
-            "lag_max_us", "overruns", "cmd_rtt_p50_us", "cmd_rtt_p99_us", "cmd_rtt_max_us")
+            "lag_max_us", "overruns", "cmd_rtt_p50_us", "cmd_rtt_p99_us", "cmd_rtt_max_us",
+            "sched")
             if k in summaries["plant"]}
     write_outputs(out, report, trace)
     finish(report, None, "report.json", args.json, render_sil)
