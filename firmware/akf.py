@@ -360,6 +360,19 @@ def _update(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_a
     return xn, Pn, Rn, rn, eps, b_pow, hit
 
 
+@njit
+def all_finite(x, P) -> bool:
+    """No NaN or inf in the state or the covariance."""
+    for i in range(x.shape[0]):
+        if not math.isfinite(x[i]):
+            return False
+    for i in range(P.shape[0]):
+        for j in range(P.shape[1]):
+            if not math.isfinite(P[i, j]):
+                return False
+    return True
+
+
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
     st.x, st.P = _predict(params.phi, params.gamma, params.q_unit, st.x, st.P, float(u),
                           float(road_intensity), True)

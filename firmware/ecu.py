@@ -195,7 +195,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
         force_meas = to_float(st.fx.force_meas, fixed.F_FORCE)
     st.force_meas_prev = force_meas
     x = st.akf.x
-    if not math.isfinite(float(x.sum()) + float(st.akf.P.sum())):
+    if not akf.all_finite(x, st.akf.P):
         faults |= FAULT_NONFINITE_ESTIMATE
         st.akf = akf.init(P.akf)
         x = st.akf.x

@@ -26,7 +26,10 @@ import can
 
 LOOPBACK = "127.0.0.1"
 FORBIDDEN_INTERFACES = ("udp_multicast",)
-RT_PRIORITY = 50            # SCHED_FIFO priority of the bench's processes in realtime pacing
+RT_PRIORITY = 50            # SCHED_FIFO base priority of the bench's processes (realtime)
+# above the base: the plant is the clock (it must wake at its deadline even when another
+# bench process runs on that core), the hub relays, the ECU answers; the app may wait
+RT_OFFSET = {"plant": 10, "hub": 5, "ecu": 0, "app": -5}
 
 
 class BusError(RuntimeError):
@@ -101,6 +104,11 @@ def die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+
+
+def rt_of(base: int, role: str) -> int:
+    """The SCHED_FIFO priority of a bench process for a base priority (0: none)."""
+    return max(1, min(99, base + RT_OFFSET[role])) if base > 0 else 0
 
 
 def set_rt_priority(priority: int) -> str:

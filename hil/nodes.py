@@ -266,6 +266,7 @@ class EcuNode:
         self.status_faults = 0              # OR of the fault words since the last ECU_STATUS
         self.frame_faults: Counter = Counter()
         self.last_rec = None
+        self.unrecorded = None              # the last tick, until record() books it
         self.sha = hashlib.sha256()
         self.cols = {k: [] for k in ("road_est", "dtd_est", "force_cmd", "grade_est", "mode",
                                      "recommended", "faults", "enable")}
@@ -318,6 +319,7 @@ class EcuNode:
         self.pending.append(MISSING)
 
     def tick(self) -> list[Frame]:
+        self.record()
         k = self.k
         s = self.pending.popleft()
         if s is MISSING:
@@ -335,16 +337,15 @@ class EcuNode:
                    s["MOTOR_CURRENT_RAW"]) if s is not None else (None,) * 4)
         counts = tuple(None if c is None else int(c) for c in counts)
         kind, rmode, rid = self.req
-        inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, self.link_faults)
+        link_faults = self.link_faults
+        inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults)
         self.state, out = ecu.step(self.state, inp)
-        self.sha.update(_IN.pack(k, *(-1 if c is None else c for c in counts),
-                                 -1 if speed is None else speed, kind, rmode, rid,
-                                 self.link_faults))
-        self.sha.update(_OUT.pack(out.duty_q15, out.regen, out.enable, out.recommended_mode,
-                                  out.active_mode, out.grade, out.reason, out.faults, out.events,
-                                  out.override, 0, out.force_cmd_n, out.road_est_um,
-                                  out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
-                                  out.dtd_rms_um, 0))
+        self.k += 1
+        self.link_faults = 0
+        # the command first (realtime sends it first; the plant waits for it), then the rest
+        cmd = self.tx.frame("ACTUATOR_CMD", {
+            "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable),
+            "SENSOR_SEQ": self.seq})
         frames = []
         grade = UNKNOWN_GRADE_ON_BUS if out.grade == fp.GRADE_UNKNOWN else out.grade
         self.status_faults |= out.faults
@@ -365,9 +366,6 @@ class EcuNode:
                 "RECOMMENDED_MODE": out.recommended_mode, "ESTIMATED_GRADE": grade,
                 "ACTIVE_MODE": out.active_mode, "REASON": out.reason,
                 "OVERRIDE": int(out.override)}))
-        cmd = self.tx.frame("ACTUATOR_CMD", {
-            "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable),
-            "SENSOR_SEQ": self.seq})
         if self.lockstep and self.awaiting:
             self.held_cmd = cmd
         elif self.lockstep:
@@ -375,6 +373,25 @@ class EcuNode:
         else:                 # realtime: the command is what the plant waits for; send it first
             self.awaiting = 0
             frames.insert(0, cmd)
+        self.unrecorded = (k, counts, speed, kind, rmode, rid, link_faults, out)
+        return frames
+
+    def record(self) -> None:
+        """The tick's bookkeeping (trace hash, per-tick record), kept off the path from the
+        sensor frame to the command: callers run it after sending the tick's frames; the next
+        tick and ``summary``/``trace`` run it when they did not."""
+        if self.unrecorded is None:
+            return
+        k, counts, speed, kind, rmode, rid, link_faults, out = self.unrecorded
+        self.unrecorded = None
+        self.sha.update(_IN.pack(k, *(-1 if c is None else c for c in counts),
+                                 -1 if speed is None else speed, kind, rmode, rid,
+                                 link_faults))
+        self.sha.update(_OUT.pack(out.duty_q15, out.regen, out.enable, out.recommended_mode,
+                                  out.active_mode, out.grade, out.reason, out.faults, out.events,
+                                  out.override, 0, out.force_cmd_n, out.road_est_um,
+                                  out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
+                                  out.dtd_rms_um, 0))
         c = self.cols
         c["road_est"].append(out.road_est_um * 1e-6)
         c["dtd_est"].append(out.dtd_est_um * 1e-6)
@@ -384,11 +401,9 @@ class EcuNode:
         c["recommended"].append(out.recommended_mode)
         c["faults"].append(out.faults)
         c["enable"].append(out.enable)
-        self.k += 1
-        self.link_faults = 0
-        return frames
 
     def summary(self) -> dict:
+        self.record()
         return {"node": "ecu", "ticks": self.k, "frames_sent": dict(self.tx.sent),
                 "trace_sha256": self.sha.hexdigest(),
                 "akf_r_guard_hits": self.state.akf.guard_hits,
@@ -397,6 +412,7 @@ class EcuNode:
                 "fx_gain_saturations": 0 if self.state.fx is None else self.state.fx.gain_saturations}
 
     def trace(self) -> dict:
+        self.record()
         c = self.cols
         return {"road_est": np.array(c["road_est"]), "dtd_est": np.array(c["dtd_est"]),
                 "force_cmd": np.array(c["force_cmd"], dtype=float),
@@ -570,6 +586,7 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
         send(plant, plant.emit())
         while ecu_node.ready():
             send(ecu_node, ecu_node.tick())
+            ecu_node.record()
         if not plant.ready():
             raise RuntimeError(f"lockstep broken at tick {plant.k}")
         plant.step()
@@ -577,11 +594,14 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
             progress(plant.k, plant.n)
 
 
-def warm_up(node) -> None:
-    """Run the node's compiled kernels (``firmware.jit``) once, on a throwaway copy: numba
-    loads a kernel from its cache (or compiles it) on the first call, 0.2 s for the first one
-    in a process, which in realtime pacing would be missed deadlines at the start. The node
-    itself is untouched (same bytes on the bus afterwards)."""
+def warm_up(node, ticks: int = 30) -> None:
+    """Run the node's code paths a few times on a throwaway copy before the real run: numba
+    loads a kernel from its cache (or compiles it) on its first call, 0.2 s for the first one
+    in a process, and Python's first pass through a path is slower; in realtime pacing both
+    would be missed deadlines at the start. The plant copy steps with an enabled command; the
+    ECU copy gets valid sensor and speed frames (so the estimator, grade, modes, controller
+    and actuator paths all run) and one tick without a sensor frame. The node itself is
+    untouched (the same bytes on the bus afterwards)."""
     shared = {id(node.codec): node.codec}
     if getattr(node, "inject", None) is not None:
         shared[id(node.inject)] = node.inject
@@ -590,9 +610,21 @@ def warm_up(node) -> None:
     w = copy.deepcopy(node, shared)
     if isinstance(w, PlantNode):
         w.inject = None
-        w.emit()
-        w.cmd_fresh = True
-        w.step()
+        for k in range(min(ticks, w.n)):
+            w.emit()
+            w.cmd, w.cmd_tick, w.cmd_fresh = (1000 * (k % 3 - 1), k % 2 == 0, True), w.k, True
+            w.step()
     elif isinstance(w, EcuNode):
+        tx = Tx(w.codec)
+        for k in range(ticks):
+            if k % 10 == 0:
+                w.on_frame(*tx.frame_phys("VEHICLE_SPEED", {"SPEED": 20.0}))
+            w.on_frame(*tx.frame("PLANT_SENSORS", {
+                "BODY_ACCEL_RAW": 2048 + k, "WHEEL_ACCEL_RAW": 2048 - k, "SUSP_DEFL_RAW": 2048,
+                "MOTOR_CURRENT_RAW": 2048}))
+            while w.ready():
+                w.tick()
+                w.record()
         w.pending.append(MISSING)
         w.tick()
+        w.record()

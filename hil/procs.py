@@ -31,6 +31,7 @@ BUS_ERRORS = (can.CanError, OSError, WebsocketClosed)
 EXIT_BUS = 3
 EXIT_PARTNER = 4
 PARTNER_TIMEOUT_S = 10.0
+SPIN_S = 0.0004             # realtime plant: sleep until this close to a deadline, then spin
 WATCHDOG_TICKS = 3          # realtime ECU: no sensor frame for 3 periods -> timer ticks
 
 
@@ -132,8 +133,8 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
             frames = node.emit()
         target = t0 + (k - k0) * dt
         now = time.monotonic()
-        if target - now > 0.0005:
-            time.sleep(target - now - 0.0004)
+        if target - now > SPIN_S + 0.0001:
+            time.sleep(target - now - SPIN_S)
         while time.monotonic() < target:
             pass
         lags[k] = time.monotonic() - target
@@ -215,6 +216,7 @@ def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> 
             last = time.monotonic() - (watchdog_ticks - 1) * dt
         while node.ready():
             _send(bus, node.tick())
+            node.record()
 
 
 def _stdin_keys(app, stop: Stop) -> None:

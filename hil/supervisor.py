@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from hil.bus import RT_PRIORITY, BusError, BusSpec, Hub, die_with_parent, resolve
+from hil.bus import RT_PRIORITY, BusError, BusSpec, Hub, die_with_parent, resolve, rt_of
 from hil.buslog import BusLogFile
 from hil.codec import Codec
 from hil.nodes import ID, LockstepClock
@@ -220,7 +220,7 @@ def run(args) -> int:
         if rt is None:
             rt = RT_PRIORITY if args.pace == "realtime" else 0
         if needs_hub:
-            hub = Hub(rt_priority=rt).start()
+            hub = Hub(rt_priority=rt_of(rt, "hub")).start()
             spec = BusSpec("remote", hub.url)
         assert spec is not None
         say(f"bus: {spec.interface} {spec.channel}  (watch: python -m can.viewer -i "
@@ -230,22 +230,24 @@ def run(args) -> int:
                         Codec())
         logger.start()
         bus_args = ["-i", spec.interface, "-c", spec.channel]
-        common = [*bus_args, "--out", str(out), "--pace", args.pace, "--rt-priority", str(rt)]
+        common = [*bus_args, "--out", str(out), "--pace", args.pace]
         if args.vehicle:
             common += ["--vehicle", args.vehicle]
-        ecu_argv = [*common, "--mode", args.mode]
+        ecu_argv = [*common, "--mode", args.mode, "--rt-priority", str(rt_of(rt, "ecu"))]
         if args.controller:
             ecu_argv += ["--controller", args.controller]
         if args.gains:
             ecu_argv += ["--gains", args.gains]
         if args.fixed_point:
             ecu_argv += ["--fixed-point"]
-        app_argv = [*common, "--mode", args.mode, "--quiet"]
+        app_argv = [*common, "--mode", args.mode, "--quiet", "--rt-priority",
+                    str(rt_of(rt, "app"))]
         if args.driver:
             app_argv += ["--policy", args.driver]
         if args.script:
             app_argv += ["--script", args.script]
-        plant_argv = [*common, "--route", args.route, "--seed", str(args.seed)]
+        plant_argv = [*common, "--route", args.route, "--seed", str(args.seed),
+                      "--rt-priority", str(rt_of(rt, "plant"))]
         if getattr(args, "inject", None):       # hil faults: the injector's plan
             plant_argv += ["--inject", args.inject]
             app_argv += ["--inject", args.inject]

@@ -205,3 +205,14 @@ def test_hub_drops_a_client_that_stops_reading():
         server.running = False
         t.join(2.0)
         server.close()
+
+
+def test_rt_priority_never_raises_and_says_what_it_got():
+    from hil.bus import RT_OFFSET, rt_of, set_rt_priority
+
+    assert set_rt_priority(0) == "SCHED_OTHER"
+    got = set_rt_priority(1000)                       # out of range: refused, not raised
+    assert got.startswith("SCHED_OTHER (SCHED_FIFO refused")
+    assert rt_of(0, "plant") == 0
+    assert rt_of(50, "plant") > rt_of(50, "hub") > rt_of(50, "ecu") > rt_of(50, "app") > 0
+    assert set(RT_OFFSET) == {"plant", "hub", "ecu", "app"}

@@ -136,6 +136,7 @@ def test_random_frames_never_crash_a_node_and_never_drive_the_bridge_blind(junk)
             for fid, data in ecu_node.tick():
                 plant.on_frame(fid, data)
                 app.on_frame(fid, data)
+            ecu_node.record()
             faults = ecu_node.cols["faults"][-1]
             if faults & SAFETY_RELEVANT:
                 assert not ecu_node.cols["enable"][-1]

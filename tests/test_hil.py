@@ -219,6 +219,8 @@ def test_realtime_pacing_runs_and_reports_its_deadlines(tmp_path):
     assert rep["bench"]["pace"] == "realtime" and rep["duration_s"] == pytest.approx(3.0)
     assert 0.0 <= rt["missed_deadline_ratio"] <= 1.0
     assert rt["lag_p50_us"] <= rt["lag_p99_us"] <= rt["lag_max_us"]
+    # real-time scheduling asked for: granted (SCHED_FIFO 60, the plant's) or said refused
+    assert rt["sched"] == "SCHED_FIFO 60" or rt["sched"].startswith("SCHED_OTHER (SCHED_FIFO")
     frames = read_log(tmp_path / "bus.log")
     assert len(frames) == rep["bench"]["frames_logged"]
     stamps = [f[0] for f in frames]

@@ -108,3 +108,15 @@ def test_passive_run_is_the_step_loop():
     assert a.bump_contacts == b.bump_contacts > 0
     assert a.lift_off_events == b.lift_off_events > 0
     assert np.array_equal(a.x, b.x)
+
+
+def test_grade_interpolation_is_numpys():
+    from firmware.grade import interp
+
+    xp = np.array([0.0, 5.0, 10.0, 20.0, 40.0, 70.0])
+    fp = np.array([3.0e-3, 2.5e-3, 1.1e-3, 7.0e-4, 2.0e-4, 1.3e-4])
+    rng = np.random.default_rng(2)
+    xs = np.concatenate([xp, rng.uniform(-10.0, 90.0, 2000), [np.nan, -np.inf, np.inf]])
+    got = np.array([interp(float(x), xp, fp) for x in xs])
+    want = np.interp(xs, xp, fp)
+    assert np.array_equal(got, want, equal_nan=True)
