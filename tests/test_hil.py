@@ -143,10 +143,17 @@ def _alive(pid: int) -> bool:
         f"/proc/{pid}/status").read_text().lower()
 
 
+def _default_sigint() -> None:
+    """A suite started in the background by a non-interactive shell inherits SIGINT ignored,
+    and Python then keeps it ignored; the supervisor must see Ctrl-C as a terminal sends it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_and_wait_for_nodes(out: Path):
     sup = subprocess.Popen([sys.executable, "-m", "hil", "run", "--out", str(out),
                             "--route", str(ROUTES / "override.toml"), "--mode", "comfort"],
-                           cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                           cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         kids = {pid: _cmdline(pid) for pid in _children(sup.pid)}
