@@ -603,6 +603,8 @@ def warm_up(node, ticks: int = 30) -> None:
     and actuator paths all run) and one tick without a sensor frame. The node itself is
     untouched (the same bytes on the bus afterwards)."""
     shared = {id(node.codec): node.codec}
+    if hasattr(node, "params"):             # the calibration: the same arrays (and layouts)
+        shared[id(node.params)] = node.params
     if getattr(node, "inject", None) is not None:
         shared[id(node.inject)] = node.inject
     if hasattr(node, "sha"):
