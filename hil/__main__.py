@@ -119,9 +119,9 @@ def _node_parsers(sub) -> None:
         if pace:
             p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep")
         p.add_argument("--rt-priority", type=int, default=0, metavar="N",
-                       help="SCHED_FIFO priority N (0: normal scheduling; a node's default; "
-                            "hil run passes 50 to the hub and the nodes in realtime pacing "
-                            "unless given)")
+                       help="SCHED_FIFO priority N (0: normal scheduling, a node's default). "
+                            "hil run: the base priority, 50 in realtime pacing and 0 in "
+                            "lockstep unless given; plant +10, hub +5, ECU 0, app -5")
 
     p = sub.add_parser("run", help="the bench: hub, ECU, plant and driver app as processes on "
                                    "a CAN bus; bus.log, report.json/.md and figures in --out")
