@@ -66,11 +66,22 @@ class FrameSpec:
     min_interval_ticks: int = 0   # 0: no rate supervision
 
 
+_ID_CRC: dict[int, int] = {}    # the CRC register after a message ID's two bytes (a cache)
+
+
 def checksum_of(spec: FrameSpec, data: bytes | bytearray) -> int:
-    data = bytes(data)
+    """crc8(ID as two bytes, little-endian + the payload without the CHECKSUM byte)."""
+    crc = _ID_CRC.get(spec.msg_id)
+    if crc is None:
+        crc = CRC8_INIT
+        for b in (spec.msg_id & 0xFFFF).to_bytes(2, "little"):
+            crc = _CRC_TABLE[crc ^ b]
+        _ID_CRC[spec.msg_id] = crc
     cb = spec.checksum_byte
-    body = data if cb is None else data[:cb] + data[cb + 1:]
-    return crc8((spec.msg_id & 0xFFFF).to_bytes(2, "little") + body)
+    table = _CRC_TABLE
+    for b in (data if cb is None else data[:cb] + data[cb + 1:]):
+        crc = table[crc ^ b]
+    return crc ^ CRC8_XOROUT
 
 
 def counter_of(spec: FrameSpec, data: bytes | bytearray) -> int:
@@ -79,12 +90,14 @@ def counter_of(spec: FrameSpec, data: bytes | bytearray) -> int:
 
 def seal(spec: FrameSpec, data: bytes | bytearray, counter: int) -> bytes:
     """Write COUNTER and CHECKSUM into a payload (the sender's side)."""
-    buf = bytearray(data)
+    return seal_word(spec, int.from_bytes(bytes(data), "little"), len(data), counter)
+
+
+def seal_word(spec: FrameSpec, word: int, length: int, counter: int) -> bytes:
+    """``seal`` for a payload given as a little-endian integer of ``length`` bytes."""
     if spec.counter_bit is not None:
-        word = int.from_bytes(bytes(buf), "little")
-        word &= ~(0xF << spec.counter_bit)
-        word |= (counter & 0xF) << spec.counter_bit
-        buf = bytearray(word.to_bytes(len(buf), "little"))
+        word = (word & ~(0xF << spec.counter_bit)) | ((counter & 0xF) << spec.counter_bit)
+    buf = bytearray(word.to_bytes(length, "little"))
     if spec.checksum_byte is not None:
         buf[spec.checksum_byte] = checksum_of(spec, buf)
     return bytes(buf)

@@ -121,14 +121,14 @@ class Codec:
                 v = 0 if sig.name in ("COUNTER", "CHECKSUM") else int(raw_values.get(sig.name, 0))
                 raw[sig.name] = min(hi, max(lo, v))
             data = m.encode(raw, scaling=False, strict=False)
-        else:
-            word = 0
-            for sig, start, length, _signed, lo, hi, _s, _o in layout:
-                v = int(raw_values.get(sig, 0))
-                v = hi if v > hi else lo if v < lo else v
-                word |= (v & ((1 << length) - 1)) << start
-            data = word.to_bytes(m.length, "little")
-        return safety.seal(self.specs[m.frame_id], data, counter)
+            return safety.seal(self.specs[m.frame_id], data, counter)
+        word = 0
+        get = raw_values.get
+        for sig, start, length, _signed, lo, hi, _s, _o in layout:
+            v = int(get(sig, 0))
+            v = hi if v > hi else lo if v < lo else v
+            word |= (v & ((1 << length) - 1)) << start
+        return safety.seal_word(self.specs[m.frame_id], word, m.length, counter)
 
     def decode(self, frame_id: int, data: bytes, state: Optional[safety.RxState] = None,
                tick: int = 0, scaling: bool = True,
