@@ -33,3 +33,19 @@ def test_firmware_imports_no_io_clock_randomness():
 def test_the_scanner_catches_forbidden_imports():
     tree = ast.parse("import time\nfrom can import Bus\nimport numpy\nopen('x')\n")
     assert {"time", "can", "<call open>"} <= imported_roots(tree)
+
+
+def test_openblas_kernels_are_pinned_in_the_test_processes():
+    """hil.blas: on an AVX2 x86-64 host numpy's and scipy's OpenBLAS run the Haswell kernels
+    (so an AVX-512 host computes the same calibration bytes), unless the environment chose."""
+    import os
+
+    import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS)
+
+    from hil import blas
+
+    core = blas.wanted_core()
+    if core is None:
+        return
+    want = os.environ.get(blas.VAR, core)
+    assert blas.loaded_cores() == {"numpy": want, "scipy": want}

@@ -8,9 +8,10 @@ Keys (the contract): ``ecu_step_us_p50``, ``ecu_step_us_p99`` (float path),
 ``sil_rtf`` (simulated s per wall s of ``hil sim`` on the default route), ``hil_lockstep_rtf``
 (``hil run --pace lockstep`` over the hub), ``realtime_missed_deadline_ratio`` (60 s at 1 kHz,
 ``--pace realtime``), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
-machine: ``cpu_model``, ``cpu_count``, ``python``. ``--quick`` shortens every run (a smoke
-test of the tool, not a measurement). Each figure is measured on this machine, once; run it
-on an otherwise idle machine.
+machine: ``cpu_model``, ``cpu_count``, ``python``, ``blas_cores`` (OpenBLAS's kernels,
+``hil.blas``). ``--quick`` shortens every run (a smoke test of the tool, not a
+measurement). Each figure is measured on this machine, once; run it on an otherwise idle
+machine.
 """
 
 from __future__ import annotations
@@ -109,6 +110,10 @@ def run(quick: bool, progress=print) -> dict:
     step_s = 2.0 if quick else 20.0
     out: dict = {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(),
                  "python": platform.python_version(), "quick": quick}
+    import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS too)
+
+    from hil.blas import loaded_cores
+    out["blas_cores"] = loaded_cores()
     progress("ECU step, float path ...")
     t = ecu_step_times(step_s, False)
     out["ecu_step_us_p50"], out["ecu_step_us_p99"] = (float(np.percentile(t, q)) for q in (50, 99))
