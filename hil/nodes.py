@@ -149,7 +149,7 @@ class PlantNode:
                 "SEGMENT": int(self.timeline.segment[k])}))
         if k % self.p_energy == 0:
             out.append(self.tx.frame_phys("ENERGY_STATUS", {
-                "STORED_ENERGY": a.ledger.stored_j, "SUPPLY_ENERGY": a.ledger.supply_drawn_j}))
+                "STORED_ENERGY": a.stored_j, "SUPPLY_ENERGY": a.supply_drawn_j}))
         out.append(self.tx.frame("PLANT_SENSORS", {
             "BODY_ACCEL_RAW": r.body_accel, "WHEEL_ACCEL_RAW": r.wheel_accel,
             "SUSP_DEFL_RAW": r.susp_defl, "MOTOR_CURRENT_RAW": r.motor_current}))
@@ -202,8 +202,8 @@ class PlantNode:
         r["sws"][k] = a.x[2] - a.x[3]
         r["dtd"][k] = a.x[3] - a.zf
         r["force"][k] = a.actuator_force_n()
-        r["stored"][k] = a.ledger.stored_j
-        r["drawn"][k] = a.ledger.supply_drawn_j
+        r["stored"][k] = a.stored_j
+        r["drawn"][k] = a.supply_drawn_j
         r["duty"][k] = duty / 32768.0 if enable else 0.0
         r["fallback"][k] = fallback
         self.k += 1

@@ -58,6 +58,14 @@ def _sym(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (outer + outer.T)
 
 
+# The ledger's running sums, in the compiled step's accumulator array (QuarterCarPlant._acc).
+ACC = ("road_in_j", "nonlinear_work_j", "supply_drawn_j", "stored_j", "copper_loss_j",
+       "damper_loss_j", "friction_loss_j", "screw_loss_j", "flyback_loss_j", "electromagnetic_j",
+       "actuator_mech_j", "final_mech_j", "final_inductor_j")
+(A_ROAD, A_NL, A_SUPPLY, A_STORED, A_CU, A_DAMPER, A_FRIC, A_SCREW, A_FLYBACK, A_EM, A_ACT,
+ A_MECH, A_IND) = range(len(ACC))
+
+
 @dataclass
 class _Discretisation:
     phi: np.ndarray       # (10, 10)
@@ -158,9 +166,20 @@ class QuarterCarPlant:
                 if enabled and not actuator:
                     continue
                 self._disc[(enabled, motoring)] = self._discretise(enabled, motoring)
+        # the same, stacked for the compiled step: [enabled, motoring] (a passive car never
+        # uses enabled=True; its entries repeat the open bridge's)
+        self._phis = np.empty((2, 2, N_AUG, N_AUG))
+        self._flows = np.empty((2, 2, len(FLOWS), N_AUG * N_AUG))
+        for enabled in (0, 1):
+            for motoring in (0, 1):
+                d = self._disc.get((bool(enabled), bool(motoring)), self._disc[(False, bool(motoring))])
+                self._phis[enabled, motoring] = d.phi
+                self._flows[enabled, motoring] = d.flows
+        self._v = np.array([ap.bus_voltage_v, ap.storage_voltage_v])
         self.x = np.zeros(5)  # vs, vt, zs, zt, i
         self.zf = 0.0
-        self.ledger = Ledger()
+        self._ledger = Ledger()
+        self._acc = np.zeros(len(ACC))
         self.bump_contacts = 0
         self.lift_off_events = 0
         self.in_bump_contact = False
@@ -218,10 +237,27 @@ class QuarterCarPlant:
         """Static equilibrium on a road at height ``zf0`` (deviations from it are zero)."""
         self.x = np.array([0.0, 0.0, zf0, zf0, 0.0])
         self.zf = float(zf0)
-        self.ledger = Ledger()
-        self.ledger.initial_mech_j = self.ledger.final_mech_j = self.mech_energy_j()
+        self._ledger = Ledger()
+        self._acc[:] = 0.0
+        self._ledger.initial_mech_j = self._acc[A_MECH] = self.mech_energy_j()
         self.bump_contacts = self.lift_off_events = self.current_limited_steps = 0
         self.in_bump_contact = self.tire_lifted = False
+
+    @property
+    def ledger(self) -> Ledger:
+        """The energy ledger (its running sums live in the compiled step's array)."""
+        led = self._ledger
+        for name, v in zip(ACC, self._acc.tolist()):
+            setattr(led, name, v)
+        return led
+
+    @property
+    def stored_j(self) -> float:
+        return float(self._acc[A_STORED])
+
+    @property
+    def supply_drawn_j(self) -> float:
+        return float(self._acc[A_SUPPLY])
 
     def mech_energy_j(self) -> float:
         vs, vt, zs, zt, _ = self.x
@@ -271,44 +307,17 @@ class QuarterCarPlant:
         if not math.isfinite(duty):
             duty, enable = 0.0, False  # fail-safe: a non-finite command opens the bridge
         duty = min(1.0, max(-1.0, duty))
-        ap = self.cfg.actuator
-        enabled = enable and self.has_actuator
-        ledger = self.ledger
-        if not enabled and self.x[4] != 0.0:
-            ledger.flyback_loss_j += self.inductor_energy_j()
-            self.x[4] = 0.0
-        motoring = self._motoring() if enabled else True
-        disc = self._disc[(enabled, motoring)]
-        v_dc = ap.storage_voltage_v if regen else ap.bus_voltage_v
-        volt = duty * v_dc if enabled else 0.0
-        new, zeta, limited, contact, lifted = _step(disc.phi, self.x, self.zf, float(zf_next),
-                                                    volt, v_dc, enabled, self.dt, self._pp)
+        enabled = bool(enable) and self.has_actuator
+        self.x, limited, contact, lifted = _advance(
+            self._phis, self._flows, self.x, self.zf, float(zf_next), duty, bool(regen), enabled,
+            self.dt, self._pp, self._v, self._L, self.track_ledger, self._acc)
         if contact and not self.in_bump_contact:
             self.bump_contacts += 1
         if lifted and not self.tire_lifted:
             self.lift_off_events += 1
         self.in_bump_contact, self.tire_lifted = contact, lifted
         self.current_limited_steps += int(limited)
-        if self.track_ledger:
-            energies = _quadratic_forms(disc.flows, zeta)
-            road_in, nl_work, dc, cu, damper, fric, em, act = energies.tolist()
-            ledger.road_in_j += road_in
-            ledger.nonlinear_work_j += nl_work
-            if regen:
-                ledger.stored_j -= dc
-            else:
-                ledger.supply_drawn_j += dc
-            ledger.copper_loss_j += cu
-            ledger.damper_loss_j += damper
-            ledger.friction_loss_j += fric
-            ledger.electromagnetic_j += em
-            ledger.actuator_mech_j += act
-            ledger.screw_loss_j += em - act
-        self.x = new
         self.zf = float(zf_next)
-        if self.track_ledger:
-            ledger.final_mech_j = self.mech_energy_j()
-            ledger.final_inductor_j = self.inductor_energy_j()
 
     def run_passive(self, zf_next: np.ndarray) -> dict:
         """Step the plant with the bridge open through the road heights ``zf_next`` in one
@@ -411,6 +420,42 @@ def _step(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp):
             s += phi[i, j] * zeta[j]
         new[i] = s
     return new, zeta, limited, contact, lifted
+
+
+@njit
+def _advance(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l, track, acc):
+    """``QuarterCarPlant.step`` after its input checks: the bridge, the discretisation of the
+    efficiency branch, the exact step and (``track``) the ledger's sums in ``acc``. Returns
+    (x after the step, current limited, bump contact, tyre lifted)."""
+    if not enabled and x[4] != 0.0:         # the bridge opens: the inductor's energy is dumped
+        acc[A_FLYBACK] += 0.5 * ind_l * x[4] ** 2
+        x = x.copy()
+        x[4] = 0.0
+    motoring = pp[P_K] * x[4] * (x[0] - x[1]) >= 0.0 if enabled else True
+    e, m = int(enabled), int(motoring)
+    v_dc = v[1] if regen else v[0]
+    volt = duty * v_dc if enabled else 0.0
+    new, zeta, limited, contact, lifted = _step(phis[e, m], x, zf, zf_next, volt, v_dc,
+                                                enabled, dt, pp)
+    if track:
+        q = _quadratic_forms(flows[e, m], zeta)
+        acc[A_ROAD] += q[0]
+        acc[A_NL] += q[1]
+        if regen:
+            acc[A_STORED] -= q[2]
+        else:
+            acc[A_SUPPLY] += q[2]
+        acc[A_CU] += q[3]
+        acc[A_DAMPER] += q[4]
+        acc[A_FRIC] += q[5]
+        acc[A_EM] += q[6]
+        acc[A_ACT] += q[7]
+        acc[A_SCREW] += q[6] - q[7]
+        vs, vt, zs, zt = new[0], new[1], new[2], new[3]
+        acc[A_MECH] = 0.5 * (pp[P_MS] * vs * vs + pp[P_MT] * vt * vt
+                             + pp[P_KS] * (zs - zt) ** 2 + pp[P_KT] * (zt - zf_next) ** 2)
+        acc[A_IND] = 0.5 * ind_l * new[4] ** 2
+    return new, limited, contact, lifted
 
 
 @njit
