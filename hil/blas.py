@@ -1,4 +1,4 @@
-"""The same bytes on every x86-64 host: pin OpenBLAS's kernels before numpy loads.
+"""OpenBLAS set up before numpy loads: the same kernels on every x86-64 host, one thread.
 
 numpy and scipy call OpenBLAS, which picks its kernels for the CPU when the library loads
 (``Haswell`` for AVX2, ``SkylakeX`` for AVX-512, ...). The kernels sum in different orders,
@@ -14,6 +14,12 @@ imported: ``tools`` and the test suite (``tests/conftest.py``) import ``hil`` fi
 environment (an explicit choice), does nothing on a CPU without AVX2 and FMA or off x86-64
 (those hosts may differ in the last bits), and warns when numpy was imported before it,
 since the kernels are chosen by then. Child processes inherit the variable.
+
+It also sets ``OPENBLAS_NUM_THREADS=1`` (unless set): every matrix here is at most 10 x 10,
+and on this 2-core machine numpy's and scipy's worker threads spun after the small calls,
+burning 22 us of CPU per 75 us SIL tick on the other core (process CPU time 97 us per tick
+against 75 us of wall time; with one thread both are 75 us), a core that ``hil run``'s node
+processes need. Same bytes either way (full road section); GA tuning time unchanged.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import warnings
 
 VAR = "OPENBLAS_CORETYPE"
 CORE = "Haswell"
+THREADS_VAR = "OPENBLAS_NUM_THREADS"
 
 
 def _cpu_flags() -> set[str]:
@@ -48,33 +55,47 @@ def wanted_core() -> str | None:
 
 
 def pin() -> None:
-    if VAR in os.environ:
-        return
+    want = {}
+    if THREADS_VAR not in os.environ:
+        want[THREADS_VAR] = "1"
     core = wanted_core()
-    if core is None:
-        return
-    if "numpy" in sys.modules:
-        warnings.warn(f"numpy was imported before the project set {VAR}={core}: OpenBLAS "
-                      f"chose its kernels for this CPU, and results may differ in the last "
-                      f"bits from other hosts (set {VAR}={core} in the environment)",
+    if core is not None and VAR not in os.environ:
+        want[VAR] = core
+    if want and "numpy" in sys.modules:
+        setting = " ".join(f"{k}={v}" for k, v in want.items())
+        warnings.warn(f"numpy was imported before the project set {setting}: OpenBLAS chose "
+                      f"its kernels and threads for this CPU, and results may differ in the "
+                      f"last bits from other hosts (set {setting} in the environment)",
                       RuntimeWarning, stacklevel=3)
-    os.environ[VAR] = core              # for this process's later loads and its children
+    os.environ.update(want)             # for this process's later loads and its children
 
 
-def loaded_cores() -> dict[str, str]:
-    """The kernels OpenBLAS chose in this process, per loaded copy (numpy's, scipy's)."""
+def _loaded(what: str) -> dict:
     out = {}
-    for mod, pattern, symbol in (
-            ("numpy", "numpy.libs/libscipy_openblas64_*.so", "scipy_openblas_get_corename64_"),
-            ("scipy", "scipy.libs/libscipy_openblas-*.so", "scipy_openblas_get_corename")):
+    for mod, pattern, suffix in (("numpy", "numpy.libs/libscipy_openblas64_*.so", "64_"),
+                                 ("scipy", "scipy.libs/libscipy_openblas-*.so", "")):
         if mod not in sys.modules:
             continue
         root = os.path.dirname(os.path.dirname(sys.modules[mod].__file__))
         for path in glob.glob(os.path.join(root, pattern)):
             try:
-                fn = getattr(ctypes.CDLL(path), symbol)
+                fn = getattr(ctypes.CDLL(path), f"scipy_openblas_get_{what}{suffix}")
             except (OSError, AttributeError):
                 continue
-            fn.restype = ctypes.c_char_p
-            out[mod] = fn().decode()
+            if what == "corename":
+                fn.restype = ctypes.c_char_p
+                out[mod] = fn().decode()
+            else:
+                fn.restype = ctypes.c_int
+                out[mod] = int(fn())
     return out
+
+
+def loaded_cores() -> dict[str, str]:
+    """The kernels OpenBLAS chose in this process, per loaded copy (numpy's, scipy's)."""
+    return _loaded("corename")
+
+
+def loaded_threads() -> dict[str, int]:
+    """OpenBLAS's thread count in this process, per loaded copy (numpy's, scipy's)."""
+    return _loaded("num_threads")

@@ -37,13 +37,16 @@ def test_the_scanner_catches_forbidden_imports():
 
 def test_openblas_kernels_are_pinned_in_the_test_processes():
     """hil.blas: on an AVX2 x86-64 host numpy's and scipy's OpenBLAS run the Haswell kernels
-    (so an AVX-512 host computes the same calibration bytes), unless the environment chose."""
+    (so an AVX-512 host computes the same calibration bytes), and one thread each, unless the
+    environment chose."""
     import os
 
     import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS)
 
     from hil import blas
 
+    threads = int(os.environ.get(blas.THREADS_VAR, "1"))
+    assert blas.loaded_threads() == {"numpy": threads, "scipy": threads}
     core = blas.wanted_core()
     if core is None:
         return

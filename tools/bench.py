@@ -8,10 +8,10 @@ Keys (the contract): ``ecu_step_us_p50``, ``ecu_step_us_p99`` (float path),
 ``sil_rtf`` (simulated s per wall s of ``hil sim`` on the default route), ``hil_lockstep_rtf``
 (``hil run --pace lockstep`` over the hub), ``realtime_missed_deadline_ratio`` (60 s at 1 kHz,
 ``--pace realtime``), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
-machine: ``cpu_model``, ``cpu_count``, ``python``, ``blas_cores`` (OpenBLAS's kernels,
-``hil.blas``). ``--quick`` shortens every run (a smoke test of the tool, not a
-measurement). Each figure is measured on this machine, once; run it on an otherwise idle
-machine.
+machine: ``cpu_model``, ``cpu_count``, ``python``, ``blas_cores``, ``blas_threads``
+(OpenBLAS's kernels and threads, ``hil.blas``). ``--quick`` shortens every run (a smoke test
+of the tool, not a measurement). Each figure is measured on this machine, once; run it on an
+otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -112,8 +112,8 @@ def run(quick: bool, progress=print) -> dict:
                  "python": platform.python_version(), "quick": quick}
     import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS too)
 
-    from hil.blas import loaded_cores
-    out["blas_cores"] = loaded_cores()
+    from hil.blas import loaded_cores, loaded_threads
+    out["blas_cores"], out["blas_threads"] = loaded_cores(), loaded_threads()
     progress("ECU step, float path ...")
     t = ecu_step_times(step_s, False)
     out["ecu_step_us_p50"], out["ecu_step_us_p99"] = (float(np.percentile(t, q)) for q in (50, 99))
