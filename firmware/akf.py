@@ -373,22 +373,45 @@ def all_finite(x, P) -> bool:
     return True
 
 
+# The state's arrays are updated in place by the ``*_into`` kernels: returning new arrays
+# from a compiled call costs about 1 us each in boxing, the larger part of a 7.8 us update.
+
+@njit
+def _predict_into(phi, gamma, q_unit, x, P, u, q, with_x):
+    xn, Pn = _predict(phi, gamma, q_unit, x, P, u, q, with_x)
+    x[:] = xn
+    P[:, :] = Pn
+
+
+@njit
+def _update_into(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive,
+                 eps_out):
+    xn, Pn, Rn, rn, eps, b_pow, hit = _update(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow,
+                                              b, adaptive, bias_adaptive)
+    x[:] = xn
+    P[:, :] = Pn
+    R[:, :] = Rn
+    r[:] = rn
+    eps_out[:] = eps
+    return b_pow, hit
+
+
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
-    st.x, st.P = _predict(params.phi, params.gamma, params.q_unit, st.x, st.P, float(u),
-                          float(road_intensity), True)
+    _predict_into(params.phi, params.gamma, params.q_unit, st.x, st.P, float(u),
+                  float(road_intensity), True)
 
 
 def predict_cov(params: AkfParams, st: AkfState, road_intensity: float) -> None:
     """The covariance half of the prediction (the fixed-point path predicts x itself)."""
-    _, st.P = _predict(params.phi, params.gamma, params.q_unit, st.x, st.P, 0.0,
-                       float(road_intensity), False)
+    _predict_into(params.phi, params.gamma, params.q_unit, st.x, st.P, 0.0,
+                  float(road_intensity), False)
 
 
 def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
-    st.x, st.P, st.R, st.r, st.innovation, st.b_pow, hit = _update(
+    st.b_pow, hit = _update_into(
         params.H, params.D, st.P, st.R, st.r, st.x, np.asarray(z, dtype=float), float(u),
         params.r_floor, st.r_scale, st.b_pow, params.forgetting, params.adaptive,
-        params.bias_adaptive)
+        params.bias_adaptive, st.innovation)
     st.guard_hits += int(hit)
 
 

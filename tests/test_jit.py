@@ -162,4 +162,5 @@ def test_warm_up_leaves_nothing_to_compile_for_the_run():
     assert res.returncode == 0, res.stderr[-2000:]
     got = json.loads(res.stdout)
     assert got["before"] == got["after"]
-    assert got["before"]["firmware.akf._update"] >= 1
+    assert got["before"]["firmware.akf._update_into"] >= 1
+    assert got["before"]["hil.plant._advance"] >= 1
