@@ -600,8 +600,8 @@ def warm_up(node, ticks: int = 30) -> None:
     in a process, and Python's first pass through a path is slower; in realtime pacing both
     would be missed deadlines at the start. The plant copy steps with an enabled command; the
     ECU copy gets valid sensor and speed frames (so the estimator, grade, modes, controller
-    and actuator paths all run) and one tick without a sensor frame. The node itself is
-    untouched (the same bytes on the bus afterwards)."""
+    and actuator paths all run) and one tick without a sensor frame, then every controller
+    runs once. The node itself is untouched (the same bytes on the bus afterwards)."""
     shared = {id(node.codec): node.codec}
     if hasattr(node, "params"):             # the calibration: the same arrays (and layouts)
         shared[id(node.params)] = node.params
@@ -630,3 +630,5 @@ def warm_up(node, ticks: int = 30) -> None:
         w.pending.append(MISSING)
         w.tick()
         w.record()
+        for ctrl in range(len(fp.CTRL_NAMES)):     # every controller (the modes used above
+            ecu._force_of(w.state, ctrl, w.state.akf.x, 0.1)   # may not reach all of them)

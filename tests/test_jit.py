@@ -126,6 +126,7 @@ WARM_CHECK = """
 import json
 from numba.core.registry import CPUDispatcher
 from firmware import akf, grade
+from firmware.control import bppid
 from hil import nodes, plant, sensors, sil
 from hil.codec import Codec
 from hil.config import default_vehicle
@@ -133,7 +134,7 @@ from hil.road import load_route
 
 def kernels():
     out = {}
-    for mod in (akf, grade, plant, sensors):
+    for mod in (akf, bppid, grade, plant, sensors):
         for name, obj in vars(mod).items():
             if isinstance(obj, CPUDispatcher):
                 out[mod.__name__ + "." + name] = len(obj.signatures)
@@ -164,3 +165,4 @@ def test_warm_up_leaves_nothing_to_compile_for_the_run():
     assert got["before"] == got["after"]
     assert got["before"]["firmware.akf._update_into"] >= 1
     assert got["before"]["hil.plant._advance"] >= 1
+    assert got["before"]["firmware.control.bppid._learn"] >= 1
