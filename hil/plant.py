@@ -172,7 +172,8 @@ class QuarterCarPlant:
         self._flows = np.empty((2, 2, len(FLOWS), N_AUG * N_AUG))
         for enabled in (0, 1):
             for motoring in (0, 1):
-                d = self._disc.get((bool(enabled), bool(motoring)), self._disc[(False, bool(motoring))])
+                d = self._disc.get((bool(enabled), bool(motoring)),
+                                   self._disc[(False, bool(motoring))])
                 self._phis[enabled, motoring] = d.phi
                 self._flows[enabled, motoring] = d.flows
         self._v = np.array([ap.bus_voltage_v, ap.storage_voltage_v])
