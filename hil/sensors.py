@@ -7,7 +7,7 @@ rounding half away from zero and saturating at the rails, never wrapping.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -40,8 +40,7 @@ def from_counts(channel: SensorChannel, counts: int) -> float:
     return channel.range_min + counts * channel.lsb
 
 
-@dataclass(frozen=True)
-class SensorReading:
+class SensorReading(NamedTuple):
     """One sample of every channel in ADC counts."""
 
     body_accel: int

@@ -143,9 +143,9 @@ def test_ecu_opens_the_bridge_on_a_sensor_fault_within_the_tick():
     inp = ecu.Inputs(0, mid["body_accel"], mid["wheel_accel"], mid["susp_defl"],
                      mid["motor_current"], 2000, fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
     for k in range(400):
-        st, out = ecu.step(st, dataclasses.replace(inp, tick=k))
+        st, out = ecu.step(st, inp._replace(tick=k))
     assert out.enable and out.active_mode == fp.MODE_SAFETY
-    st, out = ecu.step(st, dataclasses.replace(inp, tick=400, susp_defl=-5))
+    st, out = ecu.step(st, inp._replace(tick=400, susp_defl=-5))
     assert not out.enable and out.duty_q15 == 0 and out.faults & adc.FAULT_BIT["susp_defl"]
     assert out.reason == modes.REASON_FAULT
 

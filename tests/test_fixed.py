@@ -108,8 +108,8 @@ def test_a_diverged_covariance_is_a_fault_not_a_crash_in_the_fixed_path():
                      motor_current=2048, speed=2000)
     st, out = ecu.step(st, inp)
     st.akf.P[0, 0] = float("nan")
-    st, out = ecu.step(st, ecu.Inputs(**{**inp.__dict__, "tick": 1}))
+    st, out = ecu.step(st, inp._replace(tick=1))
     assert out.faults & ecu.FAULT_NONFINITE_ESTIMATE and not out.enable
     assert st.fx.x == [0] * 5 and st.fx_log[-1][0].reset
-    st, out = ecu.step(st, ecu.Inputs(**{**inp.__dict__, "tick": 2}))
+    st, out = ecu.step(st, inp._replace(tick=2))
     assert not out.faults & ecu.FAULT_NONFINITE_ESTIMATE
