@@ -261,18 +261,13 @@ class QuarterCarPlant:
         return float(self._acc[A_SUPPLY])
 
     def mech_energy_j(self) -> float:
-        vs, vt, zs, zt, _ = self.x
-        return 0.5 * (self._ms * vs * vs + self._mt * vt * vt + self._ks * (zs - zt) ** 2
-                      + self._kt * (zt - self.zf) ** 2)
-
-    def inductor_energy_j(self) -> float:
-        return 0.5 * self._L * self.x[4] ** 2
+        return _mech_energy(self.x, self.zf, self._pp)
 
     def _nonlinear_forces(self) -> tuple[float, float, bool, bool]:
         return _nonlinear(self.x, self.zf, self._pp)
 
     def _motoring(self) -> bool:
-        return self._K * self.x[4] * (self.x[0] - self.x[1]) >= 0.0
+        return _motoring(self.x, self._pp)
 
     def actuator_force_n(self) -> float:
         """Force of the actuator on the body (screw output minus its friction)."""
@@ -429,10 +424,10 @@ def _advance(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l
     efficiency branch, the exact step and (``track``) the ledger's sums in ``acc``. Returns
     (x after the step, current limited, bump contact, tyre lifted)."""
     if not enabled and x[4] != 0.0:         # the bridge opens: the inductor's energy is dumped
-        acc[A_FLYBACK] += 0.5 * ind_l * x[4] ** 2
+        acc[A_FLYBACK] += _inductor_energy(x[4], ind_l)
         x = x.copy()
         x[4] = 0.0
-    motoring = pp[P_K] * x[4] * (x[0] - x[1]) >= 0.0 if enabled else True
+    motoring = _motoring(x, pp) if enabled else True
     e, m = int(enabled), int(motoring)
     v_dc = v[1] if regen else v[0]
     volt = duty * v_dc if enabled else 0.0
@@ -452,11 +447,28 @@ def _advance(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l
         acc[A_EM] += q[6]
         acc[A_ACT] += q[7]
         acc[A_SCREW] += q[6] - q[7]
-        vs, vt, zs, zt = new[0], new[1], new[2], new[3]
-        acc[A_MECH] = 0.5 * (pp[P_MS] * vs * vs + pp[P_MT] * vt * vt
-                             + pp[P_KS] * (zs - zt) ** 2 + pp[P_KT] * (zt - zf_next) ** 2)
-        acc[A_IND] = 0.5 * ind_l * new[4] ** 2
+        acc[A_MECH] = _mech_energy(new, zf_next, pp)
+        acc[A_IND] = _inductor_energy(new[4], ind_l)
     return new, limited, contact, lifted
+
+
+@njit
+def _mech_energy(x, zf, pp):
+    """Kinetic energy of both masses plus the spring's and the tyre's."""
+    vs, vt, zs, zt = x[0], x[1], x[2], x[3]
+    return 0.5 * (pp[P_MS] * vs * vs + pp[P_MT] * vt * vt + pp[P_KS] * (zs - zt) ** 2
+                  + pp[P_KT] * (zt - zf) ** 2)
+
+
+@njit
+def _inductor_energy(i, ind_l):
+    return 0.5 * ind_l * i ** 2
+
+
+@njit
+def _motoring(x, pp):
+    """The motor drives the screw (K i v_rel >= 0): efficiency eta, else 1/eta."""
+    return pp[P_K] * x[4] * (x[0] - x[1]) >= 0.0
 
 
 @njit

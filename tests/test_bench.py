@@ -25,4 +25,4 @@ def test_bench_tool_writes_every_key_of_the_contract(tmp_path):
         assert isinstance(data[key], float) and data[key] >= 0.0, key
     assert data["ecu_step_us_p99"] >= data["ecu_step_us_p50"] > 0.0
     assert data["cpu_count"] >= 1 and data["cpu_model"]
-    assert isinstance(data["blas_cores"], dict)
+    assert isinstance(data["blas_cores"], dict) and isinstance(data["blas_threads"], dict)
