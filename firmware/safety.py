@@ -97,10 +97,11 @@ def seal_word(spec: FrameSpec, word: int, length: int, counter: int) -> bytes:
     """``seal`` for a payload given as a little-endian integer of ``length`` bytes."""
     if spec.counter_bit is not None:
         word = (word & ~(0xF << spec.counter_bit)) | ((counter & 0xF) << spec.counter_bit)
-    buf = bytearray(word.to_bytes(length, "little"))
-    if spec.checksum_byte is not None:
-        buf[spec.checksum_byte] = checksum_of(spec, buf)
-    return bytes(buf)
+    cb = spec.checksum_byte
+    if cb is not None:
+        word &= ~(0xFF << (8 * cb))
+        word |= checksum_of(spec, word.to_bytes(length, "little")) << (8 * cb)
+    return word.to_bytes(length, "little")
 
 
 @dataclass

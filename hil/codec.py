@@ -11,9 +11,8 @@ raises on bad input.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Optional
+from typing import Mapping, NamedTuple, Optional
 
 import cantools
 
@@ -39,10 +38,11 @@ def declared_raw_range(sig) -> tuple[int, int]:
     return lo, hi
 
 
-def to_raw(sig, value: float) -> int:
+def to_raw(sig, value: float, declared: Optional[tuple[int, int]] = None) -> int:
     """Physical -> raw: round half away from zero, saturate at the declared range, never
-    wrap. NaN -> 0 (or the nearest end of the declared range)."""
-    lo, hi = declared_raw_range(sig)
+    wrap. NaN -> 0 (or the nearest end of the declared range). ``declared``: the signal's
+    ``declared_raw_range`` when the caller has it."""
+    lo, hi = declared or declared_raw_range(sig)
     if isinstance(value, bool):
         value = int(value)
     if isinstance(value, float) and math.isnan(value):
@@ -57,12 +57,22 @@ def to_raw(sig, value: float) -> int:
     return min(hi, max(lo, round_half_away(raw)))
 
 
-@dataclass
-class Decoded:
+class Decoded(NamedTuple):
     name: str
     signals: dict
     ok: bool
     faults: int
+
+
+class _Plan(NamedTuple):
+    """One message's packing, worked out once from the DBC (little-endian signals only)."""
+    name: str
+    frame_id: int
+    length: int
+    spec: safety.FrameSpec
+    pack: tuple          # (signal, start bit, mask, raw lo, raw hi), COUNTER/CHECKSUM left out
+    unpack: tuple        # (signal, start bit, mask, sign bit or 0), every signal
+    scaled: tuple        # (signal, scale, offset)
 
 
 class Codec:
@@ -77,23 +87,32 @@ class Codec:
                 msg_id=m.frame_id, dlc=m.length,
                 counter_bit=counter.start if counter is not None else None,
                 checksum_byte=checksum.start // 8 if checksum is not None else None)
-        # bit layouts for the fast path (all signals little-endian, as in our DBC); a DBC
-        # with big-endian signals goes through cantools' own packer
-        self._layouts: dict[int, Optional[tuple]] = {}
         self._by_name = {m.name: m for m in self.db.messages}
         self._by_id = {m.frame_id: m for m in self.db.messages}
+        # the packing of every message, worked out once (all signals little-endian, as in
+        # our DBC); a message with a big-endian signal goes through cantools' own packer
+        self._plans: dict = {}
         for m in self.db.messages:
+            plan = None
             if all(sig.byte_order == "little_endian" for sig in m.signals):
-                self._layouts[m.frame_id] = tuple(
-                    (sig.name, sig.start, sig.length, sig.is_signed, *raw_range(sig),
-                     sig.scale, sig.offset) for sig in m.signals)
-            else:
-                self._layouts[m.frame_id] = None
+                plan = _Plan(
+                    name=m.name, frame_id=m.frame_id, length=m.length,
+                    spec=self.specs[m.frame_id],
+                    pack=tuple((sig.name, sig.start, (1 << sig.length) - 1, *raw_range(sig))
+                               for sig in m.signals if sig.name not in ("COUNTER", "CHECKSUM")),
+                    unpack=tuple((sig.name, sig.start, (1 << sig.length) - 1,
+                                  1 << (sig.length - 1) if sig.is_signed else 0)
+                                 for sig in m.signals),
+                    scaled=tuple((sig.name, sig.scale, sig.offset) for sig in m.signals))
+            self._plans[m.name] = self._plans[m.frame_id] = plan
         # signals whose declared range is narrower than their raw range: (name, lo, hi) raw
         self._ranges: dict[int, tuple] = {
             m.frame_id: tuple((sig.name, *declared_raw_range(sig)) for sig in m.signals
                               if declared_raw_range(sig) != raw_range(sig))
             for m in self.db.messages}
+        self._declared = {m.name: tuple((sig, declared_raw_range(sig)) for sig in m.signals
+                                        if sig.name not in ("COUNTER", "CHECKSUM"))
+                          for m in self.db.messages}
 
     def message(self, name: str):
         return self._by_name[name]
@@ -105,16 +124,16 @@ class Codec:
     def encode(self, name: str, values: Mapping[str, float], counter: int = 0) -> bytes:
         """Encode physical values (round half away from zero, saturate), seal COUNTER and
         CHECKSUM."""
-        m = self.message(name)
-        raw = {sig.name: to_raw(sig, values.get(sig.name, 0.0)) for sig in m.signals
-               if sig.name not in ("COUNTER", "CHECKSUM")}
+        get = values.get
+        raw = {sig.name: to_raw(sig, get(sig.name, 0.0), declared)
+               for sig, declared in self._declared[name]}
         return self.encode_raw(name, raw, counter)
 
     def encode_raw(self, name: str, raw_values: Mapping[str, int], counter: int = 0) -> bytes:
         """Encode raw (unscaled) integers, saturating at each signal's raw range."""
-        m = self.message(name)
-        layout = self._layouts[m.frame_id]
-        if layout is None:
+        plan = self._plans[name]
+        if plan is None:
+            m = self.message(name)
             raw = {}
             for sig in m.signals:
                 lo, hi = raw_range(sig)
@@ -124,11 +143,14 @@ class Codec:
             return safety.seal(self.specs[m.frame_id], data, counter)
         word = 0
         get = raw_values.get
-        for sig, start, length, _signed, lo, hi, _s, _o in layout:
+        for sig, start, mask, lo, hi in plan.pack:
             v = int(get(sig, 0))
-            v = hi if v > hi else lo if v < lo else v
-            word |= (v & ((1 << length) - 1)) << start
-        return safety.seal_word(self.specs[m.frame_id], word, m.length, counter)
+            if v > hi:
+                v = hi
+            elif v < lo:
+                v = lo
+            word |= (v & mask) << start
+        return safety.seal_word(plan.spec, word, plan.length, counter)
 
     def decode(self, frame_id: int, data: bytes, state: Optional[safety.RxState] = None,
                tick: int = 0, scaling: bool = True,
@@ -148,14 +170,14 @@ class Codec:
         m = self._by_id[frame_id]
         if not ok:
             return Decoded(m.name, {}, False, st.faults)
-        layout = self._layouts[frame_id]
-        if layout is not None:
-            word = int.from_bytes(bytes(data), "little")
+        plan = self._plans[frame_id]
+        if plan is not None:
+            word = int.from_bytes(data, "little")
             raw = {}
-            for sig, start, length, signed, _lo, _hi, _scale, _offset in layout:
-                v = (word >> start) & ((1 << length) - 1)
-                if signed and v >> (length - 1):
-                    v -= 1 << length
+            for sig, start, mask, sign in plan.unpack:
+                v = (word >> start) & mask
+                if v & sign:
+                    v -= sign << 1
                 raw[sig] = v
         else:
             try:
@@ -168,7 +190,7 @@ class Codec:
                 return Decoded(m.name, {}, False, st.faults)
         if not scaling:
             return Decoded(m.name, raw, True, 0)
-        if layout is not None:
+        if plan is not None:
             return Decoded(m.name, {sig: raw[sig] * scale + offset
-                                    for sig, *_, scale, offset in layout}, True, 0)
+                                    for sig, scale, offset in plan.scaled}, True, 0)
         return Decoded(m.name, dict(m.decode(bytes(data), decode_choices=False)), True, 0)
