@@ -10,12 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from firmware.params import AdcChannel, AdcParams
+from firmware.params import AdcParams
 
 CHANNELS = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
 
 # fault bits of the channels (the low byte of the ECU's fault word)
 FAULT_BIT = {name: 1 << i for i, name in enumerate(CHANNELS)}
+SPEED = CHANNELS.index("speed")
 
 
 @dataclass
@@ -32,42 +33,40 @@ class AdcState:
     channels: dict = field(default_factory=lambda: {name: ChannelState() for name in CHANNELS})
 
 
-def counts_to_si(channel: AdcChannel, counts: int) -> float:
-    return channel.range_min + counts * channel.lsb
-
-
-def _valid_counts(channel: AdcChannel, counts) -> bool:
-    return isinstance(counts, int) and not isinstance(counts, bool) and 0 <= counts <= channel.full_scale
-
-
 def sample(params: AdcParams, state: AdcState, raw: dict) -> tuple[dict, int]:
     """Convert one sample of every channel. Returns ({name: SI value}, fault bits)."""
-    values = {}
+    values, faults = sample_counts(params, state, tuple(raw.get(name) for name in CHANNELS))
+    return dict(zip(CHANNELS, values)), faults
+
+
+def sample_counts(params: AdcParams, state: AdcState, counts: tuple) -> tuple[tuple, int]:
+    """``sample`` with the counts and the SI values as tuples in ``CHANNELS`` order (the
+    ECU's path: no dictionaries)."""
+    values = []
     faults = 0
-    for name in CHANNELS:
-        ch: AdcChannel = getattr(params, name)
-        st: ChannelState = state.channels[name]
-        counts = raw.get(name)
-        if _valid_counts(ch, counts):
-            at_rail = counts == 0 or counts == ch.full_scale
-            # speed legitimately sits at 0 counts when the car stands still
-            if name == "speed" and counts == 0:
-                at_rail = False
+    rail_ticks, recover_ticks = params.rail_ticks, params.recover_ticks
+    chans = (params.body_accel, params.wheel_accel, params.susp_defl, params.motor_current,
+             params.speed)
+    for i, (ch, st, c) in enumerate(zip(chans, state.channels.values(), counts)):
+        if isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= ch.full_scale:
+            # at a rail; speed legitimately sits at 0 counts when the car stands still
+            at_rail = c == ch.full_scale or (c == 0 and i != SPEED)
             st.rail_count = st.rail_count + 1 if at_rail else 0
-            bad = st.rail_count >= params.rail_ticks
+            bad = st.rail_count >= rail_ticks
         else:
             bad = True
         if bad:
             st.good_count = 0
             st.faulty = True
+            faults |= 1 << i
         else:
             st.good_count += 1
-            if st.faulty and st.good_count >= params.recover_ticks:
+            if st.faulty and st.good_count >= recover_ticks:
                 st.faulty = False
-            if not st.faulty:
-                st.value = counts_to_si(ch, counts)
-                st.counts = counts
-        if st.faulty:
-            faults |= FAULT_BIT[name]
-        values[name] = st.value
-    return values, faults
+            if st.faulty:
+                faults |= 1 << i
+            else:
+                st.value = ch.range_min + c * ch.lsb
+                st.counts = c
+        values.append(st.value)
+    return tuple(values), faults

@@ -396,6 +396,33 @@ def _update_into(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, b
     return b_pow, hit
 
 
+@njit
+def _tick_into(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now, r_floor,
+               r_scale, b_pow, b, adaptive, bias_adaptive, eps_out):
+    _predict_into(phi, gamma, q_unit, x, P, u_tick, q, True)
+    z = np.empty(H.shape[0])
+    z[0] = z0
+    z[1] = z1
+    if z.shape[0] > 2:
+        z[2] = z2
+    b_pow, hit = _update_into(H, D, P, R, r, x, z, u_now, r_floor, r_scale, b_pow, b, adaptive,
+                              bias_adaptive, eps_out)
+    return b_pow, hit, all_finite(x, P)
+
+
+def tick(params: AkfParams, st: AkfState, u_tick: float, road_intensity: float, ba: float,
+         defl: float, wa: float, u_now: float) -> bool:
+    """``predict`` then ``update`` with z = [ba, defl] or [ba, defl, wa] (as many as H has
+    rows), in one compiled call. Returns ``all_finite`` of the new state."""
+    st.b_pow, hit, finite = _tick_into(
+        params.phi, params.gamma, params.q_unit, params.H, params.D, st.P, st.R, st.r, st.x,
+        float(u_tick), float(road_intensity), float(ba), float(defl), float(wa), float(u_now),
+        params.r_floor, st.r_scale, st.b_pow, params.forgetting, params.adaptive,
+        params.bias_adaptive, st.innovation)
+    st.guard_hits += int(hit)
+    return finite
+
+
 def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
     _predict_into(params.phi, params.gamma, params.q_unit, st.x, st.P, float(u),
                   float(road_intensity), True)

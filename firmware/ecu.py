@@ -65,6 +65,10 @@ class Inputs(NamedTuple):
     #                          receive path; a channel whose frame was invalid arrives as None
 
 
+# the ADC takes the counts as inputs[1:6]
+assert Inputs._fields[1:6] == adc.CHANNELS
+
+
 class Outputs(NamedTuple):
     duty_q15: int            # signed PWM duty
     regen: bool              # regen switch: bridge DC side to the storage element
@@ -165,12 +169,8 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     plant = P.plant
     st.tick = inp.tick
     # 1. ADC
-    raw = {"body_accel": inp.body_accel, "wheel_accel": inp.wheel_accel,
-           "susp_defl": inp.susp_defl, "motor_current": inp.motor_current, "speed": inp.speed}
-    v, faults = adc.sample(P.adc, st.adc, raw)
+    (ba, wa, defl, i_meas, speed), faults = adc.sample_counts(P.adc, st.adc, inp[1:6])
     faults |= inp.link_faults
-    ba, wa, defl, i_meas, speed = (v["body_accel"], v["wheel_accel"], v["susp_defl"],
-                                   v["motor_current"], v["speed"])
     # 2. AKF
     # road intensity for the process noise: the grade estimate's G_q once there is one
     # (Sage-Husa adaptation of R needs Q about right on smooth roads, where sensor noise
@@ -188,15 +188,16 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
         rel_prev = x_prev[0] - x_prev[1]
         g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
         force_meas = g * plant.force_constant * i_meas
-        z = np.array((ba, defl, wa)[:P.akf.H.shape[0]])   # [BA, SWS] or [BA, SWS, WA]
-        akf.predict(P.akf, st.akf, 0.5 * (st.force_meas_prev + force_meas), road_per_mps * speed)
-        akf.update(P.akf, st.akf, z, force_meas)
+        # z = [BA, SWS] or [BA, SWS, WA]
+        finite = akf.tick(P.akf, st.akf, 0.5 * (st.force_meas_prev + force_meas),
+                          road_per_mps * speed, ba, defl, wa, force_meas)
     else:
         fx_in = _estimate_fixed(st, road_per_mps * speed)
         force_meas = to_float(st.fx.force_meas, fixed.F_FORCE)
+        finite = akf.all_finite(st.akf.x, st.akf.P)
     st.force_meas_prev = force_meas
     x = st.akf.x
-    if not akf.all_finite(x, st.akf.P):
+    if not finite:
         faults |= FAULT_NONFINITE_ESTIMATE
         st.akf = akf.init(P.akf)
         x = st.akf.x

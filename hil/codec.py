@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Mapping, NamedTuple, Optional
+from typing import Callable, Mapping, NamedTuple, Optional
 
 import cantools
 
@@ -57,6 +57,20 @@ def to_raw(sig, value: float, declared: Optional[tuple[int, int]] = None) -> int
     return min(hi, max(lo, round_half_away(raw)))
 
 
+def _pack_word(fields: tuple, values) -> int:
+    """The payload as a little-endian integer: each raw value saturated at its signal's raw
+    range and shifted to its start bit; ``fields`` are (start bit, mask, lo, hi)."""
+    word = 0
+    for (start, mask, lo, hi), v in zip(fields, values):
+        v = int(v)
+        if v > hi:
+            v = hi
+        elif v < lo:
+            v = lo
+        word |= (v & mask) << start
+    return word
+
+
 class Decoded(NamedTuple):
     name: str
     signals: dict
@@ -70,7 +84,8 @@ class _Plan(NamedTuple):
     frame_id: int
     length: int
     spec: safety.FrameSpec
-    pack: tuple          # (signal, start bit, mask, raw lo, raw hi), COUNTER/CHECKSUM left out
+    names: tuple         # the signals to pack (COUNTER/CHECKSUM left out) ...
+    pack: tuple          # ... and their (start bit, mask, raw lo, raw hi)
     unpack: tuple        # (signal, start bit, mask, sign bit or 0), every signal
     scaled: tuple        # (signal, scale, offset)
 
@@ -94,12 +109,14 @@ class Codec:
         self._plans: dict = {}
         for m in self.db.messages:
             plan = None
+            packed = [sig for sig in m.signals if sig.name not in ("COUNTER", "CHECKSUM")]
             if all(sig.byte_order == "little_endian" for sig in m.signals):
                 plan = _Plan(
                     name=m.name, frame_id=m.frame_id, length=m.length,
                     spec=self.specs[m.frame_id],
-                    pack=tuple((sig.name, sig.start, (1 << sig.length) - 1, *raw_range(sig))
-                               for sig in m.signals if sig.name not in ("COUNTER", "CHECKSUM")),
+                    names=tuple(sig.name for sig in packed),
+                    pack=tuple((sig.start, (1 << sig.length) - 1, *raw_range(sig))
+                               for sig in packed),
                     unpack=tuple((sig.name, sig.start, (1 << sig.length) - 1,
                                   1 << (sig.length - 1) if sig.is_signed else 0)
                                  for sig in m.signals),
@@ -141,16 +158,29 @@ class Codec:
                 raw[sig.name] = min(hi, max(lo, v))
             data = m.encode(raw, scaling=False, strict=False)
             return safety.seal(self.specs[m.frame_id], data, counter)
-        word = 0
         get = raw_values.get
-        for sig, start, mask, lo, hi in plan.pack:
-            v = int(get(sig, 0))
-            if v > hi:
-                v = hi
-            elif v < lo:
-                v = lo
-            word |= (v & mask) << start
+        word = _pack_word(plan.pack, [get(sig, 0) for sig in plan.names])
         return safety.seal_word(plan.spec, word, plan.length, counter)
+
+    def packer(self, name: str, signals: tuple[str, ...]) -> Callable[..., bytes]:
+        """``encode_raw`` for a fixed list of signals given by position (the per-tick frames:
+        no dictionary to build and search): ``packer(name, ("A", "B"))((a, b), counter)``
+        is ``encode_raw(name, {"A": a, "B": b}, counter)``."""
+        plan = self._plans[name]
+        known = self.message(name).signals
+        unknown = set(signals) - {sig.name for sig in known} | set(signals) & {"COUNTER",
+                                                                              "CHECKSUM"}
+        if unknown:
+            raise ValueError(f"{name} has no signal(s) {sorted(unknown)} to pack")
+        if plan is None:
+            return lambda values, counter=0: self.encode_raw(name, dict(zip(signals, values)),
+                                                             counter)
+        fields = tuple(plan.pack[plan.names.index(sig)] for sig in signals)
+        spec, length = plan.spec, plan.length
+
+        def pack(values, counter: int = 0) -> bytes:
+            return safety.seal_word(spec, _pack_word(fields, values), length, counter)
+        return pack
 
     def decode(self, frame_id: int, data: bytes, state: Optional[safety.RxState] = None,
                tick: int = 0, scaling: bool = True,

@@ -37,7 +37,7 @@ from firmware import params as fp
 from hil.codec import Codec
 from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
-from hil.plant import QuarterCarPlant
+from hil.plant import OBS, QuarterCarPlant
 from hil.road import GRADES, Route, drive_timeline, generate_profile
 from hil.sensors import SensorSuite
 
@@ -50,6 +50,9 @@ OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
 UNKNOWN_GRADE_ON_BUS = 7
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 
+_DUTY, _FALLBACK = len(OBS), len(OBS) + 1   # PlantNode.obs columns after plant.OBS
+TRACE = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored", "drawn",
+         "duty", "fallback")                   # the plant's trace columns
 _IN = struct.Struct("<q5i3iI")
 _OUT = struct.Struct("<i2B4BIBBB7i")
 
@@ -75,6 +78,14 @@ class Tx:
         self.counters[name] = (c + 1) & 0xF
         self.sent[name] += 1
         return ID[name], self.codec.encode_raw(name, raw, c)
+
+    def frame_packed(self, name: str, pack: Callable[..., bytes], values: tuple) -> Frame:
+        """``frame`` with the raw values by position, packed by ``pack``
+        (``Codec.packer(name, signals)``): the per-tick frames."""
+        c = self.counters.get(name, 0)
+        self.counters[name] = (c + 1) & 0xF
+        self.sent[name] += 1
+        return ID[name], pack(values, c)
 
     def frame_phys(self, name: str, values: dict) -> Frame:
         c = self.counters.get(name, 0)
@@ -110,10 +121,14 @@ class PlantNode:
         self.cmd_timeout_ticks = cmd_timeout_ticks
         self.inject = inject                # hil.faults.Injector (fault campaign) or None
         self.tx = Tx(codec)
+        self.pack_sensors = codec.packer("PLANT_SENSORS", (   # in SensorReading's order
+            "BODY_ACCEL_RAW", "WHEEL_ACCEL_RAW", "SUSP_DEFL_RAW", "MOTOR_CURRENT_RAW"))
         self.p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
         self.p_truth = period_ticks(codec, "SIM_TRUTH", dt)
         self.p_energy = period_ticks(codec, "ENERGY_STATUS", dt)
         self.cmd_rx = safety.RxState()
+        # the frames on_frame does nothing with (a bus harness may skip them)
+        self.ignore = frozenset(ID.values()) - {ID["ACTUATOR_CMD"]}
         self.k = 0
         self.cmd = (0, False, False)        # duty Q15, regen, enable
         self.cmd_tick = -1                  # tick of the last valid command
@@ -122,9 +137,11 @@ class PlantNode:
         self.bad_cmd_frames = 0
         self.missed_cmds = 0                # steps without a fresh command
         self.fallback_ticks = 0             # steps in the passive fallback
-        names = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored",
-                 "drawn", "duty", "fallback")
-        self.arrays = {k: np.zeros(self.n) for k in names}
+        # per tick: the active corner (plant.OBS, written by one compiled call), then the
+        # command applied and whether the passive fallback acted
+        self.obs = np.zeros((self.n, len(OBS) + 2))
+        self.speed = self.timeline.speed_mps.tolist()
+        self.arrays = {k: np.zeros(self.n) for k in ("p_ba", "p_sws", "p_dtd", "p_vrel")}
 
     @property
     def done(self) -> bool:
@@ -137,8 +154,7 @@ class PlantNode:
             self.inject.before_emit(self)
         if self.noise_step is not None and k * self.dt >= self.noise_step[0]:
             self.sensors.noise_gain[:] = self.noise_step[1]
-        ba, wa = a.accelerations()
-        r = self.sensors.sample(ba, wa, a.susp_defl_m, a.current_a, self.timeline.speed_mps[k])
+        r = self.sensors.sample(*a.sensed(), self.speed[k])
         out = []
         if k % self.p_speed == 0:
             out.append(self.tx.frame("VEHICLE_SPEED", {"SPEED": r.speed}))
@@ -150,9 +166,7 @@ class PlantNode:
         if k % self.p_energy == 0:
             out.append(self.tx.frame_phys("ENERGY_STATUS", {
                 "STORED_ENERGY": a.stored_j, "SUPPLY_ENERGY": a.supply_drawn_j}))
-        out.append(self.tx.frame("PLANT_SENSORS", {
-            "BODY_ACCEL_RAW": r.body_accel, "WHEEL_ACCEL_RAW": r.wheel_accel,
-            "SUSP_DEFL_RAW": r.susp_defl, "MOTOR_CURRENT_RAW": r.motor_current}))
+        out.append(self.tx.frame_packed("PLANT_SENSORS", self.pack_sensors, r[:4]))
         if self.inject is not None:
             out = self.inject.after_emit(self, out)
         return out
@@ -198,14 +212,9 @@ class PlantNode:
             for name in ("ba", "sws", "dtd", "vrel"):
                 r["p_" + name][k:end] = tw[name]
             self.twin_until = end
-        r["ba"][k], _ = a.accelerations()
-        r["sws"][k] = a.x[2] - a.x[3]
-        r["dtd"][k] = a.x[3] - a.zf
-        r["force"][k] = a.actuator_force_n()
-        r["stored"][k] = a.stored_j
-        r["drawn"][k] = a.supply_drawn_j
-        r["duty"][k] = duty / 32768.0 if enable else 0.0
-        r["fallback"][k] = fallback
+        a.observe_into(self.obs, k)
+        self.obs[k, _DUTY] = duty / 32768.0 if enable else 0.0
+        self.obs[k, _FALLBACK] = fallback
         self.k += 1
         self.cmd_fresh = False
 
@@ -219,7 +228,9 @@ class PlantNode:
 
     def trace(self) -> dict:
         k = self.k
-        out = {name: v[:k] for name, v in self.arrays.items()}
+        col = {**{name: i for i, name in enumerate(OBS)}, "duty": _DUTY, "fallback": _FALLBACK}
+        out = {name: (self.arrays[name][:k] if name in self.arrays
+                      else self.obs[:k, col[name]].copy()) for name in TRACE}
         out.update(zf=self.zf[1:k + 1], segment=self.timeline.segment[:k],
                    true_grade=self.true_grade[:k], speed=self.timeline.speed_mps[:k])
         return out
@@ -245,6 +256,7 @@ class EcuNode:
         dt = params.dt_s
         self.state = ecu.init(params, fixed_point=fixed_point, record=record)
         self.tx = Tx(codec)
+        self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"))
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
         p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
@@ -254,7 +266,8 @@ class EcuNode:
                    for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST")}
         self.listen = {ID[n] for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST",
                                        "SIM_TICK")}
-        self.ignore = set(ID.values()) - self.listen   # known frames of others (and SIM_TRUTH)
+        # known frames of others (and SIM_TRUTH): on_frame does nothing with them
+        self.ignore = frozenset(ID.values()) - self.listen
         self.k = 0
         self.pending: deque = deque()       # sensor frames not yet processed
         self.speed_raw: Optional[int] = None
@@ -334,8 +347,7 @@ class EcuNode:
         elif not self.rx[ID["VEHICLE_SPEED"]].valid:
             speed = None
         counts = ((s["BODY_ACCEL_RAW"], s["WHEEL_ACCEL_RAW"], s["SUSP_DEFL_RAW"],
-                   s["MOTOR_CURRENT_RAW"]) if s is not None else (None,) * 4)
-        counts = tuple(None if c is None else int(c) for c in counts)
+                   s["MOTOR_CURRENT_RAW"]) if s is not None else (None,) * 4)   # (raw: ints)
         kind, rmode, rid = self.req
         link_faults = self.link_faults
         inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults)
@@ -343,9 +355,8 @@ class EcuNode:
         self.k += 1
         self.link_faults = 0
         # the command first (realtime sends it first; the plant waits for it), then the rest
-        cmd = self.tx.frame("ACTUATOR_CMD", {
-            "DUTY": out.duty_q15, "REGEN": int(out.regen), "ENABLE": int(out.enable),
-            "SENSOR_SEQ": self.seq})
+        cmd = self.tx.frame_packed("ACTUATOR_CMD", self.pack_cmd,
+                                   (out.duty_q15, out.regen, out.enable, self.seq))
         frames = []
         grade = UNKNOWN_GRADE_ON_BUS if out.grade == fp.GRADE_UNKNOWN else out.grade
         self.status_faults |= out.faults
@@ -454,6 +465,9 @@ class AppNode:
         self.reaction_ticks = reaction_ticks
         self.script = deque(sorted(script or [], key=lambda e: e[0]))
         self.tx = Tx(codec)
+        # the frames on_frame does nothing with (a bus harness may skip them)
+        self.ignore = frozenset(ID.values()) - {ID[n] for n in ("ECU_STATUS", "VEHICLE_SPEED",
+                                                                 "MODE_RECOMMEND")}
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.n_status = 0
         self.t = 0                           # ticks of simulated time (from ECU_STATUS)
@@ -568,6 +582,7 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
     bus (every frame goes to every other node, in the order sent)."""
     nodes = (plant, ecu_node, app)
     queue: deque = deque()
+    routes: dict = {}     # (sender, frame ID) -> the nodes that do not ignore it
 
     def send(sender, frames):
         queue.extend((sender, f) for f in frames)
@@ -575,11 +590,14 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
             src, (fid, data) = queue.popleft()
             if on_frame is not None:
                 on_frame(fid, data)
-            for node in nodes:
-                if node is not src:
-                    replies = node.on_frame(fid, data)
-                    if replies:
-                        queue.extend((node, r) for r in replies)
+            dests = routes.get((src, fid))
+            if dests is None:
+                dests = routes[src, fid] = tuple(
+                    n for n in nodes if n is not src and fid not in getattr(n, "ignore", ()))
+            for node in dests:
+                replies = node.on_frame(fid, data)
+                if replies:
+                    queue.extend((node, r) for r in replies)
 
     report_every = max(1, plant.n // 200)
     while not plant.done:

@@ -279,6 +279,17 @@ class QuarterCarPlant:
         """Body and wheel acceleration now (m/s^2), with the current road height."""
         return _accelerations(self.x, self.zf, self._pp, self.has_actuator)
 
+    def sensed(self) -> tuple[float, float, float, float]:
+        """What the sensors see now, in one compiled call: body and wheel acceleration
+        (``accelerations``), suspension deflection and motor current."""
+        return _sensed(self.x, self.zf, self._pp, self.has_actuator)
+
+    def observe_into(self, out: np.ndarray, k: int) -> None:
+        """Write row ``k`` of ``out`` with the quantities ``OBS`` (in that order) in one
+        compiled call: the same values as ``accelerations``, ``susp_defl_m``, ``tire_defl_m``,
+        ``actuator_force_n``, ``stored_j`` and ``supply_drawn_j``."""
+        _observe_into(self.x, self.zf, self._pp, self.has_actuator, self._acc, out, k)
+
     @property
     def susp_defl_m(self) -> float:
         return float(self.x[2] - self.x[3])
@@ -382,6 +393,26 @@ def _accelerations(x, zf, pp, has_actuator):
     ba = (-spring_damper + f_act + fb) / pp[P_MS]
     wa = (spring_damper - f_act - pp[P_KT] * (zt - zf) + fw) / pp[P_MT]
     return ba, wa
+
+
+@njit
+def _sensed(x, zf, pp, has_actuator):
+    ba, wa = _accelerations(x, zf, pp, has_actuator)
+    return ba, wa, x[2] - x[3], x[4]
+
+
+# what observe_into writes, per row
+OBS = ("ba", "wa", "sws", "dtd", "force", "stored", "drawn")
+
+
+@njit
+def _observe_into(x, zf, pp, has_actuator, acc, out, k):
+    out[k, 0], out[k, 1] = _accelerations(x, zf, pp, has_actuator)
+    out[k, 2] = x[2] - x[3]
+    out[k, 3] = x[3] - zf
+    out[k, 4] = _actuator_force(x, pp) if has_actuator else 0.0
+    out[k, 5] = acc[A_STORED]
+    out[k, 6] = acc[A_SUPPLY]
 
 
 @njit

@@ -74,10 +74,17 @@ class SensorSuite:
             self._next = 0
         z = self._noise[self._next]
         self._next += 1
-        counts = _quantise(np.array((body_accel, wheel_accel, susp_defl, motor_current, speed),
-                                    dtype=float), z, self._std, self.noise_gain, self._min,
-                           self._lsb, self._full)
-        return SensorReading(*counts.tolist())
+        return SensorReading(*_quantise5(float(body_accel), float(wheel_accel),
+                                         float(susp_defl), float(motor_current), float(speed),
+                                         z, self._std, self.noise_gain, self._min, self._lsb,
+                                         self._full))
+
+
+@njit
+def _quantise5(v0, v1, v2, v3, v4, z, std, gain, range_min, lsb, full):
+    """``_quantise`` of the five channels given as scalars (no array to build per call)."""
+    c = _quantise(np.array((v0, v1, v2, v3, v4)), z, std, gain, range_min, lsb, full)
+    return c[0], c[1], c[2], c[3], c[4]
 
 
 @njit
