@@ -40,7 +40,7 @@ class ActuatorState:
 
 
 def round_half_away(x: float) -> int:
-    return int(math.floor(x + 0.5)) if x >= 0.0 else -int(math.floor(-x + 0.5))
+    return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)   # (floor gives an int)
 
 
 def duty_to_q15(duty: float) -> int:

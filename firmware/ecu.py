@@ -104,6 +104,8 @@ class EcuState:
     ramp: int = 0                    # ticks into the crossfade
     force_meas_prev: float = 0.0     # force from the measured current, last tick
     dtd2_ema: float = 0.0            # tyre-deflection mean square (road-holding check)
+    road_per_mps: float = 0.0        # the AKF's road intensity per m/s ...
+    road_per_mps_gq: object = None   # ... computed for this G_q object (None: not yet)
     tick: int = -1
     fx_tables: fixed.FxTables | None = None   # fixed-point control path (None: float)
     fx: fixed.FxState | None = None
@@ -177,15 +179,19 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     # matters), capped at the calibrated nominal (a larger Q on rough roads only adds
     # estimation noise: measured on D roads, SWS 0.79 instead of 0.76 in comprehensive mode)
     gq = st.grade.gq
-    if P.akf_q_follows_grade and math.isfinite(gq):
-        lo, hi = P.grade.gq_centres[0] * 0.5, P.akf_q_gq_nominal
-        road_per_mps = P.akf.road_intensity_per_mps * min(hi, max(lo, gq)) / P.akf_q_gq_nominal
-    else:
-        road_per_mps = P.akf.road_intensity_per_mps
+    if gq is not st.road_per_mps_gq:     # (G_q changes once per grade block)
+        if P.akf_q_follows_grade and math.isfinite(gq):
+            lo, hi = P.grade.gq_centres[0] * 0.5, P.akf_q_gq_nominal
+            st.road_per_mps = (P.akf.road_intensity_per_mps * min(hi, max(lo, gq))
+                               / P.akf_q_gq_nominal)
+        else:
+            st.road_per_mps = P.akf.road_intensity_per_mps
+        st.road_per_mps_gq = gq
+    road_per_mps = st.road_per_mps
     if st.fx is None:
         # the force acting now, from the measured current (direction picks the efficiency)
         x_prev = st.akf.x
-        rel_prev = x_prev[0] - x_prev[1]
+        rel_prev = x_prev.item(0) - x_prev.item(1)
         g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
         force_meas = g * plant.force_constant * i_meas
         # z = [BA, SWS] or [BA, SWS, WA]
@@ -204,9 +210,10 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
         if st.fx is not None:
             fixed.reset_estimate(st.fx)
             fx_in = (*fx_in[:3], True)
+    vs, vt, _, zt, zf = x.tolist()   # (Python floats: faster arithmetic than numpy scalars)
     # 3. grade and road-holding
-    dtd_est = float(x[3] - x[4])
-    g_est = grade.step(P.grade, st.grade, float(x[1]), dtd_est, ba, speed, P.dt_s)
+    dtd_est = zt - zf
+    g_est = grade.step(P.grade, st.grade, vt, dtd_est, ba, speed, P.dt_s)
     alpha = 1.0 / P.modes.safety_window_ticks
     st.dtd2_ema += alpha * (dtd_est * dtd_est - st.dtd2_ema)
     dtd_rms = math.sqrt(st.dtd2_ema)
@@ -222,7 +229,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     regen_on = mode == MODE_ENERGY
     if st.fx is not None:
         return st, _finish(st, *_control_fixed(st, mode, safety_fault, regen_on, fx_in),
-                           regen_on, mode, g_est, faults, x, dtd_est, dtd_rms)
+                           regen_on, mode, g_est, faults, zf, dtd_est, dtd_rms)
     # 5. control, with a crossfade when the controller changes (bumpless transfer)
     want = P.modes.controllers[mode]
     if want != st.ctrl:
@@ -238,7 +245,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     force = min(lim, max(-lim, force))
     # 6. actuator
     active = (mode != MODE_PASSIVE or st.ramp < P.modes.ramp_ticks) and not safety_fault
-    rel = float(x[0] - x[1])
+    rel = vs - vt
     if active:
         i_ref = actuator.current_reference(plant, force, rel, compensate=not regen_on)
         # relative acceleration over the tick: measured now, plus the change of force
@@ -248,7 +255,8 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     else:
         actuator.reset(st.actuator)
         duty, force = 0, 0.0
-    return st, _finish(st, duty, active, force, regen_on, mode, g_est, faults, x, dtd_est, dtd_rms)
+    return st, _finish(st, duty, active, force, regen_on, mode, g_est, faults, zf, dtd_est,
+                       dtd_rms)
 
 
 def _control_fixed(st: EcuState, mode: int, safety_fault: bool, regen_on: bool,
@@ -265,18 +273,13 @@ def _control_fixed(st: EcuState, mode: int, safety_fault: bool, regen_on: bool,
 
 
 def _finish(st: EcuState, duty: int, active: bool, force: float, regen_on: bool, mode: int,
-            g_est: int, faults: int, x: np.ndarray, dtd_est: float, dtd_rms: float) -> Outputs:
-    # 7. status
+            g_est: int, faults: int, road_est: float, dtd_est: float, dtd_rms: float) -> Outputs:
+    # 7. status (positional: Outputs' field order)
     gq_log = st.grade.log_gq
+    ms = st.modes
+    rha = actuator.round_half_away
     return Outputs(
-        duty_q15=duty, regen=regen_on and active, enable=active,
-        recommended_mode=st.modes.recommended, active_mode=mode,
-        grade=g_est, faults=faults,
-        reason=st.modes.reason, events=st.modes.events, override=st.modes.override,
-        force_cmd_n=actuator.round_half_away(force),
-        road_est_um=actuator.round_half_away(float(x[4]) * 1e6),
-        dtd_est_um=actuator.round_half_away(dtd_est * 1e6),
-        gq_est_log_c=actuator.round_half_away(gq_log * 100) if math.isfinite(gq_log) else -32768,
-        ba_rms_mmps2=actuator.round_half_away(st.grade.ba_rms * 1e3),
-        dtd_rms_um=actuator.round_half_away(dtd_rms * 1e6),
-    )
+        duty, regen_on and active, active, ms.recommended, mode, g_est, faults, ms.reason,
+        ms.events, ms.override, rha(force), rha(road_est * 1e6), rha(dtd_est * 1e6),
+        rha(gq_log * 100) if math.isfinite(gq_log) else -32768, rha(st.grade.ba_rms * 1e3),
+        rha(dtd_rms * 1e6))

@@ -38,18 +38,23 @@ def declared_raw_range(sig) -> tuple[int, int]:
     return lo, hi
 
 
-def to_raw(sig, value: float, declared: Optional[tuple[int, int]] = None) -> int:
+def to_raw(sig, value: float) -> int:
     """Physical -> raw: round half away from zero, saturate at the declared range, never
-    wrap. NaN -> 0 (or the nearest end of the declared range). ``declared``: the signal's
-    ``declared_raw_range`` when the caller has it."""
-    lo, hi = declared or declared_raw_range(sig)
+    wrap. NaN -> 0 (or the nearest end of the declared range)."""
+    return _to_raw(value, *declared_raw_range(sig), sig.offset, sig.scale)
+
+
+def _to_raw(value: float, lo: int, hi: int, offset: float, scale: float) -> int:
+    """``to_raw`` with the signal's declared raw range, offset and scale given."""
     if isinstance(value, bool):
         value = int(value)
-    if isinstance(value, float) and math.isnan(value):
-        return min(hi, max(lo, 0))
-    if isinstance(value, float) and math.isinf(value):
-        return hi if value > 0 else lo
-    raw = (value - sig.offset) / sig.scale
+    if isinstance(value, float):
+        value = float(value)     # (a numpy scalar: Python arithmetic, the same bits)
+        if math.isnan(value):
+            return min(hi, max(lo, 0))
+        if math.isinf(value):
+            return hi if value > 0 else lo
+    raw = (value - offset) / scale
     if raw >= hi:
         return hi
     if raw <= lo:
@@ -127,7 +132,10 @@ class Codec:
             m.frame_id: tuple((sig.name, *declared_raw_range(sig)) for sig in m.signals
                               if declared_raw_range(sig) != raw_range(sig))
             for m in self.db.messages}
-        self._declared = {m.name: tuple((sig, declared_raw_range(sig)) for sig in m.signals
+        # encode(): (signal, (declared raw lo, hi, offset, scale)), COUNTER/CHECKSUM left out
+        self._declared = {m.name: tuple((sig.name, (*declared_raw_range(sig), sig.offset,
+                                                    sig.scale))
+                                        for sig in m.signals
                                         if sig.name not in ("COUNTER", "CHECKSUM"))
                           for m in self.db.messages}
 
@@ -142,8 +150,7 @@ class Codec:
         """Encode physical values (round half away from zero, saturate), seal COUNTER and
         CHECKSUM."""
         get = values.get
-        raw = {sig.name: to_raw(sig, get(sig.name, 0.0), declared)
-               for sig, declared in self._declared[name]}
+        raw = {sig: _to_raw(get(sig, 0.0), *conv) for sig, conv in self._declared[name]}
         return self.encode_raw(name, raw, counter)
 
     def encode_raw(self, name: str, raw_values: Mapping[str, int], counter: int = 0) -> bytes:

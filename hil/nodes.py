@@ -26,6 +26,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import struct
+from array import array
 from collections import Counter, deque
 from dataclasses import replace
 from typing import Callable, Iterable, Optional
@@ -53,8 +54,11 @@ TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 _DUTY, _FALLBACK = len(OBS), len(OBS) + 1   # PlantNode.obs columns after plant.OBS
 TRACE = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored", "drawn",
          "duty", "fallback")                   # the plant's trace columns
-_IN = struct.Struct("<q5i3iI")
-_OUT = struct.Struct("<i2B4BIBBB7i")
+# what the trace hash takes per tick: the ECU's inputs ("<q5i3iI") then its outputs
+_HASHED = struct.Struct("<q5i3iI" "i2B4BIBBB7i")
+# the ECU's per-tick trace columns (int64 rows of EcuNode.rows)
+ECU_TRACE = ("road_est_um", "dtd_est_um", "force_cmd_n", "grade", "active_mode",
+             "recommended_mode", "faults", "enable")
 
 
 def period_ticks(codec: Codec, name: str, dt_s: float) -> int:
@@ -281,8 +285,7 @@ class EcuNode:
         self.last_rec = None
         self.unrecorded = None              # the last tick, until record() books it
         self.sha = hashlib.sha256()
-        self.cols = {k: [] for k in ("road_est", "dtd_est", "force_cmd", "grade_est", "mode",
-                                     "recommended", "faults", "enable")}
+        self.rows = array("q")              # per tick: ECU_TRACE
 
     def _note(self, d, name: str) -> None:
         self.link_faults |= d.faults
@@ -395,23 +398,16 @@ class EcuNode:
             return
         k, counts, speed, kind, rmode, rid, link_faults, out = self.unrecorded
         self.unrecorded = None
-        self.sha.update(_IN.pack(k, *(-1 if c is None else c for c in counts),
-                                 -1 if speed is None else speed, kind, rmode, rid,
-                                 link_faults))
-        self.sha.update(_OUT.pack(out.duty_q15, out.regen, out.enable, out.recommended_mode,
-                                  out.active_mode, out.grade, out.reason, out.faults, out.events,
-                                  out.override, 0, out.force_cmd_n, out.road_est_um,
-                                  out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
-                                  out.dtd_rms_um, 0))
-        c = self.cols
-        c["road_est"].append(out.road_est_um * 1e-6)
-        c["dtd_est"].append(out.dtd_est_um * 1e-6)
-        c["force_cmd"].append(out.force_cmd_n)
-        c["grade_est"].append(out.grade)
-        c["mode"].append(out.active_mode)
-        c["recommended"].append(out.recommended_mode)
-        c["faults"].append(out.faults)
-        c["enable"].append(out.enable)
+        if None in counts:
+            counts = tuple(-1 if c is None else c for c in counts)
+        self.sha.update(_HASHED.pack(
+            k, *counts, -1 if speed is None else speed, kind, rmode, rid, link_faults,
+            out.duty_q15, out.regen, out.enable, out.recommended_mode, out.active_mode,
+            out.grade, out.reason, out.faults, out.events, out.override, 0, out.force_cmd_n,
+            out.road_est_um, out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
+            out.dtd_rms_um, 0))
+        self.rows.extend((out.road_est_um, out.dtd_est_um, out.force_cmd_n, out.grade,
+                          out.active_mode, out.recommended_mode, out.faults, out.enable))
 
     def summary(self) -> dict:
         self.record()
@@ -424,14 +420,11 @@ class EcuNode:
 
     def trace(self) -> dict:
         self.record()
-        c = self.cols
-        return {"road_est": np.array(c["road_est"]), "dtd_est": np.array(c["dtd_est"]),
-                "force_cmd": np.array(c["force_cmd"], dtype=float),
-                "grade_est": np.array(c["grade_est"], dtype=np.int16),
-                "mode": np.array(c["mode"], dtype=np.int8),
-                "recommended": np.array(c["recommended"], dtype=np.int8),
-                "faults": np.array(c["faults"], dtype=np.int32),
-                "enable": np.array(c["enable"], dtype=bool)}
+        c = np.array(self.rows, dtype=np.int64).reshape(-1, len(ECU_TRACE)).T   # (a copy)
+        return {"road_est": c[0] * 1e-6, "dtd_est": c[1] * 1e-6,
+                "force_cmd": c[2].astype(float), "grade_est": c[3].astype(np.int16),
+                "mode": c[4].astype(np.int8), "recommended": c[5].astype(np.int8),
+                "faults": c[6].astype(np.int32), "enable": c[7].astype(bool)}
 
 
 def _div_half_away(a: int, b: int) -> int:
