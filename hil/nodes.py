@@ -127,6 +127,8 @@ class PlantNode:
         self.tx = Tx(codec)
         self.pack_sensors = codec.packer("PLANT_SENSORS", (   # in SensorReading's order
             "BODY_ACCEL_RAW", "WHEEL_ACCEL_RAW", "SUSP_DEFL_RAW", "MOTOR_CURRENT_RAW"))
+        self.unpack_cmd = codec.unpacker("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE",
+                                                          "SENSOR_SEQ"))
         self.p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
         self.p_truth = period_ticks(codec, "SIM_TRUTH", dt)
         self.p_energy = period_ticks(codec, "ENERGY_STATUS", dt)
@@ -180,12 +182,11 @@ class PlantNode:
             self.cmd_fresh = True           # (lockstep: the ECU's tick is over either way)
             if self.inject is not None and self.inject.drop_rx(self, fid):
                 return []                   # lost in the plant's receiver
-            d = self.codec.decode(fid, data, self.cmd_rx, self.k, scaling=False)
-            if d.ok:
-                s = d.signals
-                self.cmd = (int(s["DUTY"]), bool(s["REGEN"]), bool(s["ENABLE"]))
+            v, _ = self.unpack_cmd(data, self.cmd_rx, self.k)
+            if v is not None:
+                duty, regen, enable, self.cmd_seq = v
+                self.cmd = (duty, bool(regen), bool(enable))
                 self.cmd_tick = self.k
-                self.cmd_seq = int(s["SENSOR_SEQ"])
             else:
                 self.bad_cmd_frames += 1
         return []
@@ -261,6 +262,9 @@ class EcuNode:
         self.state = ecu.init(params, fixed_point=fixed_point, record=record)
         self.tx = Tx(codec)
         self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"))
+        self.unpack_sensors = codec.unpacker("PLANT_SENSORS", (
+            "BODY_ACCEL_RAW", "WHEEL_ACCEL_RAW", "SUSP_DEFL_RAW", "MOTOR_CURRENT_RAW", "COUNTER"))
+        self.sensors_spec = codec.specs[ID["PLANT_SENSORS"]]
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
         p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
@@ -287,9 +291,9 @@ class EcuNode:
         self.sha = hashlib.sha256()
         self.rows = array("q")              # per tick: ECU_TRACE
 
-    def _note(self, d, name: str) -> None:
-        self.link_faults |= d.faults
-        for label in ecu.fault_names(d.faults):
+    def _note(self, faults: int, name: str) -> None:
+        self.link_faults |= faults
+        for label in ecu.fault_names(faults):
             self.frame_faults[f"{name}:{label}"] += 1
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
@@ -299,32 +303,36 @@ class EcuNode:
             self.pending.append(MISSING)
             return []
         rx = self.rx.get(fid)
+        if fid == ID["PLANT_SENSORS"]:
+            v, faults = self.unpack_sensors(data, rx, self.k)
+            self.pending.append(v[:4] if v is not None else None)
+            if v is not None:
+                self.seq = v[4] & 0x3
+            elif len(data) > self.sensors_spec.counter_bit // 8:
+                # the COUNTER as sent, even when corrupted
+                self.seq = safety.counter_of(self.sensors_spec, data) & 0x3
+            if v is None:
+                self._note(faults, "PLANT_SENSORS")
+            return []
         d = self.codec.decode(fid, data, rx, self.k, scaling=False,
                               spec=self.spec_speed if fid == ID["VEHICLE_SPEED"] else None)
-        if fid == ID["PLANT_SENSORS"]:
-            self.pending.append(d.signals if d.ok else None)
-            spec = self.codec.specs[fid]
-            if len(data) > spec.counter_bit // 8:   # the COUNTER as sent, even when corrupted
-                self.seq = safety.counter_of(spec, data) & 0x3
-            if not d.ok:
-                self._note(d, "PLANT_SENSORS")
-        elif fid == ID["VEHICLE_SPEED"]:
+        if fid == ID["VEHICLE_SPEED"]:
             if d.ok:
                 self.speed_raw = int(d.signals["SPEED"])
             else:
-                self._note(d, "VEHICLE_SPEED")
+                self._note(d.faults, "VEHICLE_SPEED")
         elif fid == ID["DRIVER_REQUEST"]:
             self.awaiting = max(0, self.awaiting - 1)
             if d.ok:
                 s = d.signals
                 self.req = (int(s["REQ_KIND"]), int(s["REQ_MODE"]), int(s["REQ_ID"]))
             else:
-                self._note(d, "DRIVER_REQUEST")
+                self._note(d.faults, "DRIVER_REQUEST")
             if self.held_cmd is not None and not self.awaiting:
                 cmd, self.held_cmd = self.held_cmd, None
                 return [cmd]
         else:
-            self._note(d, f"0x{fid:X}")
+            self._note(d.faults, f"0x{fid:X}")
         return []
 
     def ready(self) -> bool:
@@ -349,8 +357,7 @@ class EcuNode:
             speed = None
         elif not self.rx[ID["VEHICLE_SPEED"]].valid:
             speed = None
-        counts = ((s["BODY_ACCEL_RAW"], s["WHEEL_ACCEL_RAW"], s["SUSP_DEFL_RAW"],
-                   s["MOTOR_CURRENT_RAW"]) if s is not None else (None,) * 4)   # (raw: ints)
+        counts = s if s is not None else (None,) * 4
         kind, rmode, rid = self.req
         link_faults = self.link_faults
         inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults)
