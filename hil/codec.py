@@ -174,9 +174,8 @@ class Codec:
         no dictionary to build and search): ``packer(name, ("A", "B"))((a, b), counter)``
         is ``encode_raw(name, {"A": a, "B": b}, counter)``."""
         plan = self._plans[name]
-        known = self.message(name).signals
-        unknown = set(signals) - {sig.name for sig in known} | set(signals) & {"COUNTER",
-                                                                              "CHECKSUM"}
+        packable = {sig.name for sig in self.message(name).signals} - {"COUNTER", "CHECKSUM"}
+        unknown = set(signals) - packable
         if unknown:
             raise ValueError(f"{name} has no signal(s) {sorted(unknown)} to pack")
         if plan is None:
@@ -206,8 +205,7 @@ class Codec:
                 d = self.decode(fid, data, state, tick, scaling=False, spec=spec)
                 return (tuple(d.signals[sig] for sig in signals), 0) if d.ok else (None, d.faults)
             return via_decode
-        where = {sig.name: (sig.start, (1 << sig.length) - 1,
-                            1 << (sig.length - 1) if sig.is_signed else 0) for sig in m.signals}
+        where = {sig: (start, mask, sign) for sig, start, mask, sign in plan.unpack}
         fields = tuple(where[sig] for sig in signals)
         checks = tuple((*where[sig], lo, hi) for sig, lo, hi in self._ranges[fid])
         check_frame, invalidate, fault_range = safety.check_frame, safety.invalidate, \

@@ -146,7 +146,6 @@ class PlantNode:
         # per tick: the active corner (plant.OBS, written by one compiled call), then the
         # command applied and whether the passive fallback acted
         self.obs = np.zeros((self.n, len(OBS) + 2))
-        self.speed = self.timeline.speed_mps.tolist()
         self.arrays = {k: np.zeros(self.n) for k in ("p_ba", "p_sws", "p_dtd", "p_vrel")}
 
     @property
@@ -160,7 +159,7 @@ class PlantNode:
             self.inject.before_emit(self)
         if self.noise_step is not None and k * self.dt >= self.noise_step[0]:
             self.sensors.noise_gain[:] = self.noise_step[1]
-        r = self.sensors.sample(*a.sensed(), self.speed[k])
+        r = self.sensors.sample(*a.sensed(), self.timeline.speed_mps.item(k))
         out = []
         if k % self.p_speed == 0:
             out.append(self.tx.frame("VEHICLE_SPEED", {"SPEED": r.speed}))
@@ -305,14 +304,14 @@ class EcuNode:
         rx = self.rx.get(fid)
         if fid == ID["PLANT_SENSORS"]:
             v, faults = self.unpack_sensors(data, rx, self.k)
-            self.pending.append(v[:4] if v is not None else None)
             if v is not None:
+                self.pending.append(v[:4])
                 self.seq = v[4] & 0x3
-            elif len(data) > self.sensors_spec.counter_bit // 8:
-                # the COUNTER as sent, even when corrupted
-                self.seq = safety.counter_of(self.sensors_spec, data) & 0x3
-            if v is None:
-                self._note(faults, "PLANT_SENSORS")
+                return []
+            self.pending.append(None)
+            if len(data) > self.sensors_spec.counter_bit // 8:
+                self.seq = safety.counter_of(self.sensors_spec, data) & 0x3   # (as sent)
+            self._note(faults, "PLANT_SENSORS")
             return []
         d = self.codec.decode(fid, data, rx, self.k, scaling=False,
                               spec=self.spec_speed if fid == ID["VEHICLE_SPEED"] else None)
