@@ -47,7 +47,7 @@ def sample_counts(params: AdcParams, state: AdcState, counts: tuple) -> tuple[tu
     rail_ticks, recover_ticks = params.rail_ticks, params.recover_ticks
     chans = (params.body_accel, params.wheel_accel, params.susp_defl, params.motor_current,
              params.speed)
-    for i, (ch, st, c) in enumerate(zip(chans, state.channels.values(), counts)):
+    for i, (ch, st, c) in enumerate(zip(chans, state.channels.values(), counts, strict=True)):
         if isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= ch.full_scale:
             # at a rail; speed legitimately sits at 0 counts when the car stands still
             at_rail = c == ch.full_scale or (c == 0 and i != SPEED)

@@ -37,6 +37,12 @@ def test_adc_conversion_and_plausibility():
         assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)  # held
 
 
+def test_adc_tuple_path_refuses_a_wrong_number_of_channels():
+    """adc.sample_counts (the ECU's path) takes one count per channel, in CHANNELS order."""
+    with pytest.raises(ValueError):
+        adc.sample_counts(P.adc, adc.AdcState(), (1, 2, 3, 4))
+
+
 def test_adc_stuck_at_rail_and_recovery_hysteresis():
     st = adc.AdcState()
     faults = 0
