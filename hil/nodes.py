@@ -77,25 +77,23 @@ class Tx:
         self.counters: dict[str, int] = {}
         self.sent: Counter = Counter()
 
-    def frame(self, name: str, raw: dict) -> Frame:
+    def _count(self, name: str) -> int:
+        """The COUNTER for the next frame of ``name`` (and that frame counted as sent)."""
         c = self.counters.get(name, 0)
         self.counters[name] = (c + 1) & 0xF
         self.sent[name] += 1
-        return ID[name], self.codec.encode_raw(name, raw, c)
+        return c
+
+    def frame(self, name: str, raw: dict) -> Frame:
+        return ID[name], self.codec.encode_raw(name, raw, self._count(name))
 
     def frame_packed(self, name: str, pack: Callable[..., bytes], values: tuple) -> Frame:
         """``frame`` with the raw values by position, packed by ``pack``
         (``Codec.packer(name, signals)``): the per-tick frames."""
-        c = self.counters.get(name, 0)
-        self.counters[name] = (c + 1) & 0xF
-        self.sent[name] += 1
-        return ID[name], pack(values, c)
+        return ID[name], pack(values, self._count(name))
 
     def frame_phys(self, name: str, values: dict) -> Frame:
-        c = self.counters.get(name, 0)
-        self.counters[name] = (c + 1) & 0xF
-        self.sent[name] += 1
-        return ID[name], self.codec.encode(name, values, c)
+        return ID[name], self.codec.encode(name, values, self._count(name))
 
 
 class PlantNode:
