@@ -1,0 +1,109 @@
+"""Golden traces (openpilot process-replay style): a fixed set of SIL scenarios whose trace
+hash, bus-log hash and report metrics are pinned in ``tests/golden/golden.json``.
+
+    python -m tests.golden            # check every scenario against golden.json (exit 1 on a diff)
+    python -m tests.golden --update   # rewrite golden.json (say why in the same commit)
+
+What each pinned value covers and what is ignored: ``tests/golden/README.md``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+GOLDEN_FILE = HERE / "golden.json"
+ROUTES = HERE / "routes"
+# report keys that are not behaviour: the vehicle file's path as given
+IGNORED_REPORT_KEYS = ("vehicle",)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    route: str                      # shipped route name or a file under tests/golden/routes
+    mode: str
+    seed: int = 1
+    vehicle: Optional[str] = None   # path relative to the project root (None: Table 3 car)
+    fixed_point: bool = False
+    duration_s: Optional[float] = None
+
+    def command(self) -> str:
+        """The ``hil sim`` command line that gives the same trace and bus log."""
+        parts = ["python -m hil sim", f"--route {self.route}", f"--mode {self.mode}",
+                 f"--seed {self.seed}"]
+        if self.vehicle:
+            parts.append(f"--vehicle {self.vehicle}")
+        if self.fixed_point:
+            parts.append("--fixed-point")
+        if self.duration_s is not None:
+            parts.append(f"--duration {self.duration_s:g}")
+        return " ".join(parts + ["--out DIR"])
+
+
+SCENARIOS = (
+    Scenario("full_road_section_auto", "full_road_section", "auto"),
+    Scenario("comfort_b", "tests/golden/routes/b20.toml", "comfort"),
+    Scenario("safety_c", "tests/golden/routes/c15.toml", "safety"),
+    Scenario("comprehensive_d", "tests/golden/routes/d10.toml", "comprehensive"),
+    Scenario("regen_a", "tests/golden/routes/a25.toml", "regen"),
+    Scenario("fixed_point_auto", "full_road_section", "auto", fixed_point=True,
+             duration_s=60.0),
+    Scenario("suv_auto", "full_road_section", "auto", vehicle="hil/vehicles/suv.toml"),
+)
+BY_NAME = {s.name: s for s in SCENARIOS}
+
+
+def run(s: Scenario) -> dict:
+    """Run one scenario in process as ``hil sim --out`` does; the pinned values."""
+    from hil import sil
+    from hil.buslog import BusLogFile
+    from hil.cli import _clean
+    from hil.config import load_vehicle
+    from hil.nodes import LockstepClock
+    from hil.road import load_route
+
+    cfg = load_vehicle(ROOT / s.vehicle if s.vehicle else None)
+    route = load_route(str(ROOT / s.route) if "/" in s.route else s.route)
+    with tempfile.TemporaryDirectory() as tmp:
+        log = BusLogFile(Path(tmp) / "bus.log")
+        clock = LockstepClock(cfg.sim.plant_dt_s)
+        try:
+            report, _ = sil.run(cfg, route, s.mode, s.seed, fixed_point=s.fixed_point,
+                                duration_s=s.duration_s,
+                                on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)))
+        finally:
+            log.close()
+        buslog_sha = hashlib.sha256(log.path.read_bytes()).hexdigest()
+    metrics = json.loads(json.dumps(_clean(report)))
+    for key in IGNORED_REPORT_KEYS:
+        metrics.pop(key, None)
+    return {"command": s.command(), "trace_sha256": report["trace_sha256"],
+            "buslog_sha256": buslog_sha, "frames_logged": log.count, "report": metrics}
+
+
+def load() -> dict:
+    return json.loads(GOLDEN_FILE.read_text())
+
+
+def diff(want, got, path: str = "") -> list[str]:
+    """Where two JSON values differ (paths), at most 20."""
+    out: list[str] = []
+    if isinstance(want, dict) and isinstance(got, dict):
+        for k in sorted(set(want) | set(got)):
+            if k not in want or k not in got:
+                out.append(f"{path}/{k}: {'missing' if k not in got else 'unexpected'}")
+            else:
+                out += diff(want[k], got[k], f"{path}/{k}")
+    elif isinstance(want, list) and isinstance(got, list) and len(want) == len(got):
+        for i, (a, b) in enumerate(zip(want, got)):
+            out += diff(a, b, f"{path}[{i}]")
+    elif want != got or type(want) is not type(got):
+        out.append(f"{path}: want {want!r}, got {got!r}")
+    return out[:20]

@@ -1,0 +1,48 @@
+"""``python -m tests.golden [--update] [NAME ...]``: check (or rewrite) the golden traces."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import hil  # noqa: F401  (pins OpenBLAS's kernels before numpy loads)
+from tests import golden
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tests.golden", description=__doc__)
+    ap.add_argument("--update", action="store_true",
+                    help="rewrite golden.json with what the code gives now")
+    ap.add_argument("names", nargs="*", help="scenarios (default: all)")
+    args = ap.parse_args(argv)
+    unknown = set(args.names) - set(golden.BY_NAME)
+    if unknown:
+        print(f"error: unknown scenario(s): {', '.join(sorted(unknown))}", file=sys.stderr)
+        return 2
+    names = args.names or [s.name for s in golden.SCENARIOS]
+    want = golden.load() if golden.GOLDEN_FILE.exists() else {}
+    got, failed = dict(want), []
+    for name in names:
+        res = golden.run(golden.BY_NAME[name])
+        got[name] = res
+        problems = golden.diff(want.get(name), res) if name in want else ["not in golden.json"]
+        status = "ok" if not problems else ("updated" if args.update else "DIFFERS")
+        print(f"{name:24s} {status:8s} trace {res['trace_sha256'][:12]}  "
+              f"bus.log {res['buslog_sha256'][:12]}  {res['frames_logged']} frames")
+        if problems and not args.update:
+            failed.append(name)
+            for p in problems:
+                print(f"    {p}")
+    if args.update:
+        order = [s.name for s in golden.SCENARIOS]
+        golden.GOLDEN_FILE.write_text(json.dumps({k: got[k] for k in order if k in got},
+                                                 indent=1) + "\n")
+        print(f"wrote {golden.GOLDEN_FILE}")
+        return 0
+    print("verdict: " + ("PASS" if not failed else f"FAIL ({', '.join(failed)})"))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
