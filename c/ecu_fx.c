@@ -1,4 +1,5 @@
-/* See ecu_fx.h. Each function mirrors the one of the same name in firmware/fixed.py. */
+/* See ecu_fx.h. Each function mirrors the one of the same name in firmware/fx or
+ * firmware/control/fx (the table in firmware/fx/__init__.py). */
 #include "ecu_fx.h"
 
 #include <string.h>
@@ -253,27 +254,42 @@ static int32_t dot_state(const int32_t *m, const int8_t *frac, const int32_t *x)
     return sat32(acc);
 }
 
+static int32_t lqr_force(const int32_t *m, const int8_t *frac, const int32_t *x)
+{
+    return neg(dot_state(m, frac, x));
+}
+
+static int32_t skyhook_force(const int32_t *x)
+{
+    return neg(sat32((int64_t)CM(FX_SKYHOOK_C, x[0], FX_F_VEL, FX_F_FORCE)
+                     + CM(FX_SKYHOOK_PASSIVE_C, sub(x[0], x[1]), FX_F_VEL, FX_F_FORCE)));
+}
+
+static int32_t regen_force(const int32_t *x)
+{
+    int32_t rel = sub(x[0], x[1]);
+    int32_t f = neg(sat32((int64_t)CM(FX_REGEN_C, rel, FX_F_VEL, FX_F_FORCE)
+                          + CM(FX_REGEN_SKYHOOK_C, x[0], FX_F_VEL, FX_F_FORCE)));
+    return ((f > 0 && rel > 0) || (f < 0 && rel < 0)) ? 0 : f;
+}
+
 static int32_t force_of(fx_state_t *s, int ctrl)
 {
-    int32_t tp, ti, td, rel, f;
+    int32_t tp, ti, td;
     switch (ctrl) {
     case CTRL_LQR:
-        return neg(dot_state(FX_K_SAFETY_Q31, FX_K_SAFETY_Q31_FRAC, s->x));
+        return lqr_force(FX_K_SAFETY_Q31, FX_K_SAFETY_Q31_FRAC, s->x);
     case CTRL_GALQR:
-        return neg(dot_state(FX_K_COMPREHENSIVE_Q31, FX_K_COMPREHENSIVE_Q31_FRAC, s->x));
+        return lqr_force(FX_K_COMPREHENSIVE_Q31, FX_K_COMPREHENSIVE_Q31_FRAC, s->x);
     case CTRL_SKYHOOK:
-        return neg(sat32((int64_t)CM(FX_SKYHOOK_C, s->x[0], FX_F_VEL, FX_F_FORCE)
-                         + CM(FX_SKYHOOK_PASSIVE_C, sub(s->x[0], s->x[1]), FX_F_VEL, FX_F_FORCE)));
+        return skyhook_force(s->x);
     case CTRL_PID:
         return pid_step(&s->pid, neg(s->ba), FX_PID_KP_Q31, FX_PID_KI_Q31, FX_PID_KD_Q31,
                         &tp, &ti, &td);
     case CTRL_BPPID:
         return bppid_step(s);
     case CTRL_REGEN:
-        rel = sub(s->x[0], s->x[1]);
-        f = neg(sat32((int64_t)CM(FX_REGEN_C, rel, FX_F_VEL, FX_F_FORCE)
-                      + CM(FX_REGEN_SKYHOOK_C, s->x[0], FX_F_VEL, FX_F_FORCE)));
-        return ((f > 0 && rel > 0) || (f < 0 && rel < 0)) ? 0 : f;
+        return regen_force(s->x);
     default:
         return 0;
     }

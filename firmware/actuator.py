@@ -18,9 +18,9 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
+from firmware.fixedpoint import round_half_away
 from firmware.params import ActuatorParams, PlantParams
 
 Q15_ONE = 32768
@@ -37,10 +37,6 @@ class ActuatorState:
     i_prev: float = 0.0
     observer_valid: bool = False
     emf: float = 0.0
-
-
-def round_half_away(x: float) -> int:
-    return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)   # (floor gives an int)
 
 
 def duty_to_q15(duty: float) -> int:

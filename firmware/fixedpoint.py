@@ -65,8 +65,15 @@ def div_round(a: int, n: int) -> int:
     return q if a >= 0 else -q
 
 
+def same_sign_or_zero(a: int, b: int) -> bool:
+    """a * b >= 0"""
+    return a == 0 or b == 0 or (a > 0) == (b > 0)
+
+
 def round_half_away(x: float) -> int:
-    return int(math.floor(x + 0.5)) if x >= 0.0 else -int(math.floor(-x + 0.5))
+    """The project's one rounding rule for floats to integers (DESIGN.md section 3): half away
+    from zero. A NaN or an infinity raises ValueError (math.floor)."""
+    return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)   # (floor gives an int)
 
 
 def to_fixed(v: float, frac: int) -> int:

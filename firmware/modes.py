@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from firmware.params import (GRADE_UNKNOWN, MODE_COMFORT, MODE_COMPREHENSIVE, MODE_ENERGY,
@@ -49,11 +50,20 @@ class ModeState:
     refused_mode: int = -1
     ticks: int = 0               # steps taken
     last_request_tick: int = -(1 << 30)   # step of the previous new request
+    dtd2_ema: float = 0.0        # tyre-deflection mean square (road-holding check)
 
 
 def init(params: ModeParams) -> ModeState:
     m = params.initial_mode
     return ModeState(user_mode=m, active_mode=m, recommended=m)
+
+
+def road_holding_rms(params: ModeParams, st: ModeState, dtd_est: float) -> float:
+    """The tyre-deflection RMS of the road-holding check: an exponential mean square over
+    ``safety_window_ticks``."""
+    alpha = 1.0 / params.safety_window_ticks
+    st.dtd2_ema += alpha * (dtd_est * dtd_est - st.dtd2_ema)
+    return math.sqrt(st.dtd2_ema)
 
 
 def step(params: ModeParams, st: ModeState, grade: int, req_kind: int, req_mode: int,

@@ -1,6 +1,15 @@
-"""Frame validity: CRC-8 CHECKSUM, 4-bit COUNTER, DLC, and receive timeouts with hysteresis.
+"""Safety as data, panda style: everything that decides what the ECU trusts and when it may
+push, in one place.
 
-Written once, here; the HIL codec reuses it (two copies drift). Pure code: time is a tick count.
+* ``RX_CHECKS``: the messages the ECU receives, with their period, timeout, COUNTER/CHECKSUM
+  and minimum interval; ``TX_MESSAGES``: the only messages it sends (``tests/test_dbc.py``
+  holds both to the DBC).
+* The fault word (``FAULT_*``, ``fault_names``) and which faults are safety-relevant
+  (``SAFETY_RELEVANT``): such a fault opens the bridge in the same tick.
+* ``force_allowed``: the one final gate that decides whether active force is allowed.
+* Frame validity, below: CRC-8 CHECKSUM, 4-bit COUNTER, DLC, and receive timeouts with
+  hysteresis. Written once, here; the HIL codec reuses it (two copies drift). Pure code: time
+  is a tick count.
 
 CHECKSUM: CRC-8 SAE J1850 (polynomial 0x1D, init 0xFF, final XOR 0xFF) over the message ID as
 two bytes (little-endian) followed by the payload bytes, the CHECKSUM byte left out (the ID
@@ -16,6 +25,9 @@ the message (its content may be fine). RANGE: a decoded value outside the DBC's 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from firmware import adc
+from firmware.modes import EVT_INVALID_REQUEST, EVT_REQUEST_RATE
 
 CRC8_POLY = 0x1D
 CRC8_INIT = 0xFF
@@ -42,15 +54,87 @@ def crc8(data: bytes | bytearray) -> int:
     return crc ^ CRC8_XOROUT
 
 
-# fault bits of frame validity (the ECU's fault word; bits 0-4 are the ADC channels, 8-9 the
-# estimator and the driver request)
+# ---------------------------------------------------------------- the fault word
+# bits 0-4: the ADC channels (firmware.adc.FAULT_BIT, in adc.CHANNELS order)
 FAULT_RATE = 1 << 7               # a message (or driver request) arrived faster than allowed
+FAULT_NONFINITE_ESTIMATE = 1 << 8  # the estimator diverged (reset, fail-safe this tick)
+FAULT_INVALID_REQUEST = 1 << 9    # driver request with an invalid mode (informational)
+# 10-15: frame validity of the receive path
 FAULT_DLC = 1 << 10
 FAULT_CHECKSUM = 1 << 11
 FAULT_COUNTER = 1 << 12
 FAULT_TIMEOUT = 1 << 13
 FAULT_UNKNOWN_ID = 1 << 14
 FAULT_RANGE = 1 << 15             # a signal outside its declared range
+
+FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
+               FAULT_RATE: "rate", FAULT_NONFINITE_ESTIMATE: "estimator_reset",
+               FAULT_INVALID_REQUEST: "invalid_request", FAULT_DLC: "dlc",
+               FAULT_CHECKSUM: "checksum", FAULT_COUNTER: "counter",
+               FAULT_TIMEOUT: "timeout", FAULT_UNKNOWN_ID: "unknown_id",
+               FAULT_RANGE: "range"}
+
+# faults that make active control unsafe: every measured channel, and a diverged estimator
+SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
+                   | adc.FAULT_BIT["susp_defl"] | adc.FAULT_BIT["motor_current"]
+                   | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE)
+
+
+def fault_names(word: int) -> list[str]:
+    """The names of the bits set in a fault word (lowest bit first)."""
+    return [name for bit, name in sorted(FAULT_NAMES.items()) if word & bit]
+
+
+def request_faults(events: int) -> int:
+    """The fault bits of a tick's driver-request events (firmware.modes.EVT_*)."""
+    out = 0
+    if events & EVT_INVALID_REQUEST:
+        out |= FAULT_INVALID_REQUEST
+    if events & EVT_REQUEST_RATE:
+        out |= FAULT_RATE
+    return out
+
+
+def force_allowed(passive: bool, ramping: bool, fault: bool) -> bool:
+    """The final gate: active force only in an active mode (or while a crossfade into passive
+    runs) and never with a safety-relevant fault; otherwise the bridge is opened (passive
+    damping remains)."""
+    return (not passive or ramping) and not fault
+
+
+# ---------------------------------------------------------------- receive and transmit
+
+
+@dataclass(frozen=True)
+class RxCheck:
+    """A message the ECU receives: how it is supervised."""
+
+    message: str
+    period_ms: int                 # the DBC's GenMsgCycleTime
+    timeout_periods: int           # invalid after this many periods without a frame (0: none;
+    #                                PLANT_SENSORS drives the tick: a tick without it is the fault)
+    counter_checksum: bool         # COUNTER and CHECKSUM are checked
+    min_interval_periods: float    # a copy sooner than this (in periods) is not used: RATE
+    recover_frames: int = 1        # consecutive good frames before the message is valid again
+
+    def ticks(self, dt_s: float) -> tuple[int, int, int]:
+        """(period, timeout, minimum interval) in ticks of ``dt_s``."""
+        period = max(1, int(round(self.period_ms * 1e-3 / dt_s)))
+        min_interval = max(1, int(period * self.min_interval_periods)) \
+            if self.min_interval_periods else 0
+        return period, self.timeout_periods * period, min_interval
+
+
+RX_CHECKS = (
+    RxCheck("PLANT_SENSORS", 1, 0, True, 0.0),
+    RxCheck("VEHICLE_SPEED", 10, 3, True, 0.5),
+    RxCheck("DRIVER_REQUEST", 100, 0, True, 0.0),
+)
+RX_BY_NAME = {c.message: c for c in RX_CHECKS}
+TX_MESSAGES = ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND")
+
+
+# ---------------------------------------------------------------- frame validity
 
 
 @dataclass(frozen=True)

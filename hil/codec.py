@@ -17,7 +17,7 @@ from typing import Callable, Mapping, NamedTuple, Optional
 import cantools
 
 from firmware import safety
-from firmware.actuator import round_half_away
+from firmware.fixedpoint import round_half_away
 
 DBC_PATH = Path(__file__).resolve().parents[1] / "dbc" / "suspension.dbc"
 

@@ -87,7 +87,7 @@ FAULTS = (
               "the plant sends VEHICLE_SPEED every tick (10x its rate) for 100 ms"),
     FaultSpec("driver_request_spam", "app", 1000, False, safety.FAULT_RATE,
               "the app sends a new mode request with every answer (10 per second) for 1 s"),
-    FaultSpec("invalid_mode", "app", 100, False, ecu.FAULT_INVALID_REQUEST,
+    FaultSpec("invalid_mode", "app", 100, False, safety.FAULT_INVALID_REQUEST,
               f"the app chooses mode {INVALID_MODE} (there are 5)"),
     FaultSpec("config_nan", "config", 0, True, 0, "vehicle file with sprung_mass_kg = nan"),
     FaultSpec("config_inf", "config", 0, True, 0,
@@ -301,7 +301,7 @@ def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
             if spec.safety:   # detected means named too, not only disabled
                 hit = hit if np.any(faults[seg] & spec.expect) else hit[:0]
             bad = (faults[seg] != 0) | ~enable[seg]
-            bits = ecu.fault_names(int(np.bitwise_or.reduce(faults[seg])))
+            bits = safety.fault_names(int(np.bitwise_or.reduce(faults[seg])))
         detected = hit.size > 0
         reaction = int(hit[0]) if detected else None
         bad_idx = np.flatnonzero(bad)

@@ -35,6 +35,7 @@ import numpy as np
 
 from firmware import ecu, safety
 from firmware import params as fp
+from calib.fx_tables import build_tables
 from hil.codec import Codec
 from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
@@ -65,6 +66,17 @@ def period_ticks(codec: Codec, name: str, dt_s: float) -> int:
     return max(1, int(round(codec.cycle_ms(name) * 1e-3 / dt_s)))
 
 
+def rx_spec(codec: Codec, check: safety.RxCheck, dt_s: float) -> safety.FrameSpec:
+    """The receiver's spec of a message: the DBC's layout (DLC, COUNTER, CHECKSUM) with the
+    firmware's supervision (``safety.RX_CHECKS``: timeout, minimum interval, recovery)."""
+    spec = codec.specs[ID[check.message]]
+    _, timeout, min_interval = check.ticks(dt_s)
+    if not check.counter_checksum:
+        spec = replace(spec, counter_bit=None, checksum_byte=None)
+    return replace(spec, timeout_ticks=timeout, min_interval_ticks=min_interval,
+                   recover_frames=check.recover_frames)
+
+
 def true_grade_index(grade: str) -> int:
     return min(3, GRADES.index(grade))
 
@@ -72,13 +84,16 @@ def true_grade_index(grade: str) -> int:
 class Tx:
     """A node's transmit side: one COUNTER per message, frames sent counted per message."""
 
-    def __init__(self, codec: Codec):
+    def __init__(self, codec: Codec, allowed: Optional[Iterable[str]] = None):
         self.codec = codec
         self.counters: dict[str, int] = {}
         self.sent: Counter = Counter()
+        self.allowed = None if allowed is None else frozenset(allowed)
 
     def _count(self, name: str) -> int:
         """The COUNTER for the next frame of ``name`` (and that frame counted as sent)."""
+        if self.allowed is not None and name not in self.allowed:
+            raise ValueError(f"{name} is not on this node's transmit list")
         c = self.counters.get(name, 0)
         self.counters[name] = (c + 1) & 0xF
         self.sent[name] += 1
@@ -256,21 +271,19 @@ class EcuNode:
                  fixed_point: bool = False, record: bool = False):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
-        self.state = ecu.init(params, fixed_point=fixed_point, record=record)
-        self.tx = Tx(codec)
+        self.state = ecu.init(params, build_tables(params) if fixed_point else None, record)
+        self.tx = Tx(codec, allowed=safety.TX_MESSAGES)
         self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"))
         self.unpack_sensors = codec.unpacker("PLANT_SENSORS", (
             "BODY_ACCEL_RAW", "WHEEL_ACCEL_RAW", "SUSP_DEFL_RAW", "MOTOR_CURRENT_RAW", "COUNTER"))
         self.sensors_spec = codec.specs[ID["PLANT_SENSORS"]]
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
-        p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
-        self.spec_speed = replace(codec.specs[ID["VEHICLE_SPEED"]], timeout_ticks=3 * p_speed,
-                                  min_interval_ticks=max(1, p_speed // 2))
-        self.rx = {ID[n]: safety.RxState()
-                   for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST")}
-        self.listen = {ID[n] for n in ("PLANT_SENSORS", "VEHICLE_SPEED", "DRIVER_REQUEST",
-                                       "SIM_TICK")}
+        # receive supervision: the firmware's table (safety.RX_CHECKS) on the DBC's layout
+        self.rx_specs = {ID[c.message]: rx_spec(codec, c, dt) for c in safety.RX_CHECKS}
+        self.spec_speed = self.rx_specs[ID["VEHICLE_SPEED"]]
+        self.rx = {fid: safety.RxState() for fid in self.rx_specs}
+        self.listen = set(self.rx_specs) | {ID["SIM_TICK"]}
         # known frames of others (and SIM_TRUTH): on_frame does nothing with them
         self.ignore = frozenset(ID.values()) - self.listen
         self.k = 0
@@ -290,7 +303,7 @@ class EcuNode:
 
     def _note(self, faults: int, name: str) -> None:
         self.link_faults |= faults
-        for label in ecu.fault_names(faults):
+        for label in safety.fault_names(faults):
             self.frame_faults[f"{name}:{label}"] += 1
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
@@ -312,7 +325,7 @@ class EcuNode:
             self._note(faults, "PLANT_SENSORS")
             return []
         d = self.codec.decode(fid, data, rx, self.k, scaling=False,
-                              spec=self.spec_speed if fid == ID["VEHICLE_SPEED"] else None)
+                              spec=self.rx_specs.get(fid))
         if fid == ID["VEHICLE_SPEED"]:
             if d.ok:
                 self.speed_raw = int(d.signals["SPEED"])
@@ -419,8 +432,8 @@ class EcuNode:
                 "trace_sha256": self.sha.hexdigest(),
                 "akf_r_guard_hits": self.state.akf.guard_hits,
                 "frame_faults": dict(self.frame_faults),
-                "arithmetic": "float" if self.state.fx is None else "fixed",
-                "fx_gain_saturations": 0 if self.state.fx is None else self.state.fx.gain_saturations}
+                "arithmetic": self.state.path.name,
+                "fx_gain_saturations": self.state.path.gain_saturations}
 
     def trace(self) -> dict:
         self.record()
@@ -645,5 +658,4 @@ def warm_up(node, ticks: int = 30) -> None:
         w.pending.append(MISSING)
         w.tick()
         w.record()
-        for ctrl in range(len(fp.CTRL_NAMES)):     # every controller (the modes used above
-            ecu._force_of(w.state, ctrl, w.state.akf.x, 0.1)   # may not reach all of them)
+        w.state.path.warm_up(w.state)   # every controller (the modes above may not reach all)

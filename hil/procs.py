@@ -258,7 +258,7 @@ def _injector(args, node: str):
 
 
 def _tell_driver(t: float, faults: int, reason: int) -> None:
-    from firmware.ecu import fault_names
+    from firmware.safety import fault_names
     from firmware.modes import REASON_FAULT
 
     what = ", ".join(fault_names(faults)) or "none"

@@ -11,15 +11,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from firmware.fixedpoint import round_half_away
 from firmware.jit import njit
 from hil.config import SENSOR_NAMES, SensorChannel, SensorParams
 
 NOISE_BLOCK = 256   # ticks of noise drawn at once (the same stream as one draw per tick)
-
-
-def round_half_away(x: float) -> int:
-    """Round half away from zero (the project's one rounding rule, Python and C alike)."""
-    return int(math.floor(x + 0.5)) if x >= 0 else -int(math.floor(-x + 0.5))
 
 
 def to_counts(channel: SensorChannel, value: float) -> int:

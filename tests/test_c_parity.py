@@ -1,6 +1,6 @@
 """C portability as a tested fact: the generated tables compile warning-free and regenerate
 byte-identically; the C fixed-point control path (c/ecu_fx.c) gives the same integers as the
-Python one (firmware/fixed.py) on every tick of a recorded trace; cantools' generated C packs
+Python one (firmware/fx, firmware/control/fx) on every tick of a recorded trace; cantools' generated C packs
 our frames to the same bytes as the Python encoder."""
 
 import random
@@ -13,7 +13,11 @@ from pathlib import Path
 import cantools
 import pytest
 
-from firmware import fixed
+from calib.fx_tables import build_tables
+from firmware import params as fp
+from firmware.fx import path as fx_path
+from firmware.fx import state as fx_state
+from firmware.fx.tables import Fx
 from hil import sil
 from hil.codec import Codec, raw_range
 from hil.config import default_vehicle
@@ -81,12 +85,12 @@ def test_tables_cli_check_detects_a_stale_copy(tmp_path):
 
 
 def test_every_table_constant_is_its_float_to_the_precision_of_its_format():
-    T = fixed.build_tables(sil.ecu_params(default_vehicle(), "auto"))
+    T = build_tables(sil.ecu_params(default_vehicle(), "auto"))
     n = 0
     for name in T.__dataclass_fields__:
         v = getattr(T, name)
         for c in (v if isinstance(v, tuple) else (v,)):
-            if isinstance(c, fixed.Fx):
+            if isinstance(c, Fx):
                 n += 1
                 assert abs(c.m * 2.0 ** -c.frac - c.value) <= 2.0 ** -(c.frac + 1), (name, c)
                 assert abs(c.m) < 2 ** 31
@@ -123,13 +127,13 @@ def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(re
     assert rep["ecu_arithmetic"] == "fixed" and rep["fx_gain_saturations"] == 0
     # the trace covers every controller of the route and the crossfades between them
     wants = {i.want for i, _ in rec}
-    assert wants >= {fixed.CTRL_NONE, fixed.CTRL_REGEN, fixed.CTRL_BPPID, fixed.CTRL_LQR,
-                     fixed.CTRL_GALQR}, wants
+    assert wants >= {fp.CTRL_NONE, fp.CTRL_REGEN, fp.CTRL_BPPID, fp.CTRL_LQR,
+                     fp.CTRL_GALQR}, wants
     # the ECU's split path and the one-call replay are the same computation
-    T = fixed.build_tables(params)
-    s = fixed.init(T, params.modes.controllers[params.modes.initial_mode])
+    T = build_tables(params)
+    s = fx_state.init(T, params.modes.controllers[params.modes.initial_mode])
     for k, (inp, out) in enumerate(rec):
-        assert fixed.tick(T, s, inp) == out, k
+        assert fx_path.tick(T, s, inp) == out, k
     # C
     res = subprocess.run([str(replay_exe)], input=trace_text(rec), capture_output=True, text=True)
     assert res.returncode == 0, res.stderr

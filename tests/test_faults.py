@@ -53,7 +53,7 @@ def test_campaign_over_the_bus_meets_the_acceptance(campaign_dir):
         assert r["recovered"], r
         if spec.expect:
             # named in the fault word and in what the driver app received
-            assert set(ecu.fault_names(spec.expect)) <= set(r["fault_bits"]), r
+            assert set(safety.fault_names(spec.expect)) <= set(r["fault_bits"]), r
             assert r["driver_told"], r
         if spec.safety and spec.expect:
             # fail-safe lasted at least the hysteresis: a run of good samples before recovery

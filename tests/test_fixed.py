@@ -8,8 +8,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from firmware import actuator, fixed
-from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, best_frac, div_round, mul, neg,
+from calib.fx_tables import build_tables
+from firmware import safety
+from firmware.control.fx.bppid import tanh_q
+from firmware.fx.akf import adc_signal
+from firmware.fx.tables import ADC_FRAC, F_NN
+from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, best_frac, div_round, mul, neg, round_half_away,
                                  rshift_round, sat16, to_fixed, to_float)
 from hil import sil
 from hil.config import default_vehicle
@@ -42,7 +46,7 @@ def test_mul_is_the_exactly_rounded_saturated_product(a, b, s):
     assert INT32_MIN <= r <= INT32_MAX
     if INT32_MIN <= round(exact) <= INT32_MAX and abs(a * b) < 2 ** 52:
         assert abs(r - exact) <= 0.5
-        assert r == actuator.round_half_away(exact)
+        assert r == round_half_away(exact)
 
 
 def test_best_frac_keeps_the_most_bits_that_fit():
@@ -54,26 +58,26 @@ def test_best_frac_keeps_the_most_bits_that_fit():
 
 
 def test_tanh_table_is_accurate_and_odd():
-    T = fixed.build_tables(sil.ecu_params(CFG, "auto"))
+    T = build_tables(sil.ecu_params(CFG, "auto"))
     xs = np.linspace(-9.0, 9.0, 4001)
-    err = max(abs(to_float(fixed.tanh_q(T, to_fixed(x, fixed.F_NN)), fixed.F_NN) - math.tanh(x))
+    err = max(abs(to_float(tanh_q(T, to_fixed(x, F_NN)), F_NN) - math.tanh(x))
               for x in xs)
     assert err < 1e-5
     for x in (0.3, 2.0, 7.99):
-        q = to_fixed(x, fixed.F_NN)
-        assert fixed.tanh_q(T, -q) == -fixed.tanh_q(T, q)
+        q = to_fixed(x, F_NN)
+        assert tanh_q(T, -q) == -tanh_q(T, q)
 
 
 def test_adc_scaling_matches_the_float_conversion():
     p = sil.ecu_params(CFG, "auto")
-    T = fixed.build_tables(p)
+    T = build_tables(p)
     chans = (p.adc.body_accel, p.adc.wheel_accel, p.adc.susp_defl, p.adc.motor_current)
     for k, ch in enumerate(chans):
         for counts in (0, 1, 1234, 2048, ch.full_scale):
-            q = fixed.adc_signal(T, k, counts)
-            lsb_out = 2.0 ** -fixed.ADC_FRAC[k]
-            assert abs(to_float(q, fixed.ADC_FRAC[k]) - (ch.range_min + counts * ch.lsb)) <= lsb_out
-    assert fixed.adc_signal(T, 0, None) == 0
+            q = adc_signal(T, k, counts)
+            lsb_out = 2.0 ** -ADC_FRAC[k]
+            assert abs(to_float(q, ADC_FRAC[k]) - (ch.range_min + counts * ch.lsb)) <= lsb_out
+    assert adc_signal(T, 0, None) == 0
 
 
 # ---------------------------------------------------------------- control quality
@@ -103,13 +107,13 @@ def test_a_diverged_covariance_is_a_fault_not_a_crash_in_the_fixed_path():
     from firmware import ecu
 
     p = sil.ecu_params(CFG, "comfort")
-    st = ecu.init(p, fixed_point=True, record=True)
+    st = ecu.init(p, build_tables(p), record=True)
     inp = ecu.Inputs(tick=0, body_accel=2048, wheel_accel=2048, susp_defl=2048,
                      motor_current=2048, speed=2000)
     st, out = ecu.step(st, inp)
     st.akf.P[0, 0] = float("nan")
     st, out = ecu.step(st, inp._replace(tick=1))
-    assert out.faults & ecu.FAULT_NONFINITE_ESTIMATE and not out.enable
-    assert st.fx.x == [0] * 5 and st.fx_log[-1][0].reset
+    assert out.faults & safety.FAULT_NONFINITE_ESTIMATE and not out.enable
+    assert st.path.fx.x == [0] * 5 and st.path.log[-1][0].reset
     st, out = ecu.step(st, inp._replace(tick=2))
-    assert not out.faults & ecu.FAULT_NONFINITE_ESTIMATE
+    assert not out.faults & safety.FAULT_NONFINITE_ESTIMATE

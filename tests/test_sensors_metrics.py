@@ -8,7 +8,8 @@ from scipy.signal import freqz
 
 from hil.config import SensorChannel, default_vehicle
 from hil.metrics import peak, rising_edges, rms, wk_digital, wk_weighted_rms
-from hil.sensors import SensorSuite, from_counts, round_half_away, to_counts
+from firmware.fixedpoint import round_half_away
+from hil.sensors import SensorSuite, from_counts, to_counts
 
 CH = SensorChannel(noise_std=0.0, range_min=-10.0, range_max=10.0, bits=12)
 

@@ -294,7 +294,7 @@ extern const int8_t CONTROL_BP_SCALE_Q31_FRAC[3];
 #define AKF_Q_GQ_NOMINAL_Q31 ((int32_t)1125899907)
 #define AKF_Q_GQ_NOMINAL_Q31_FRAC 42
 
-/* fixed-point control path (firmware/fixed.py, c/ecu_fx.c) */
+/* fixed-point control path (firmware/fx, firmware/control/fx, c/ecu_fx.c) */
 #define FX_F_ACC 20
 #define FX_F_VEL 24
 #define FX_F_POS 28
