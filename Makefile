@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test bench tables tables-check clean
+.PHONY: setup run test test-fast lint bench tables tables-check clean
 
 setup: $(STAMP)
 
@@ -18,8 +18,17 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(PY) -m hil run --route full_road_section --mode auto --seed 1 --pace lockstep --out out/run
 
-test: $(STAMP)
+# the whole suite: the layer contracts, then every test (HIL, golden traces and slow ones too)
+test: lint
 	$(PY) -m pytest -q -n 2 --dist loadgroup
+
+# the unit tier: no HIL, no golden traces, no long simulation (a minute or so on a warm machine)
+test-fast: lint
+	$(PY) -m pytest -q -n 2 -m "not hil and not slow and not golden"
+
+# the import layers firmware <- calib <- hil <- tools (import-linter contracts in pyproject.toml)
+lint: $(STAMP)
+	$(VENV)/bin/lint-imports --no-cache
 
 # benchmarks: out/bench.json and a table (run on an idle machine)
 bench: $(STAMP)

@@ -1,6 +1,6 @@
 """Calibration of the ECU: every constant the firmware needs, as plain numbers and arrays.
 
-Built offline (``hil.ecu_params``) from the vehicle file, the design tools and the gains file;
+Built offline (``calib.ecu_params``) from the vehicle file, the design tools and the gains file;
 the firmware never reads files itself. The same values are exported as C tables.
 """
 

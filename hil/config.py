@@ -17,16 +17,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
+from calib.errors import ConfigError
 from firmware.params import MODE_ENERGY, MODE_NAMES
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_VEHICLE_FILE = PACKAGE_DIR / "vehicles" / "table3.toml"
 
 GRAVITY_MPS2 = 9.80665
-
-
-class ConfigError(ValueError):
-    """A configuration file is unreadable or invalid. The message is one line."""
 
 
 def read_toml(path: str | Path, what: str) -> dict[str, Any]:

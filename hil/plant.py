@@ -36,7 +36,7 @@ from scipy.linalg import expm
 
 from firmware.jit import njit
 from hil.config import VehicleConfig
-from hil.model import mechanics, van_loan_integral
+from calib.model import mechanics, van_loan_integral
 
 N_AUG = 10
 VS, VT, ZS, ZT, CUR, ZF, VOLT, ZFDOT, FB, FW = range(N_AUG)

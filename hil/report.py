@@ -9,7 +9,7 @@ from pathlib import Path
 from hil.cli import progress_bar
 from hil.config import VehicleConfig
 from hil.drive import drive, segment_masks
-from hil.model import linear_model, passive_rms
+from calib.model import linear_model, passive_rms
 from hil.road import Route
 
 SEGMENT_SETTLE_S = 3.0

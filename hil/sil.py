@@ -17,7 +17,8 @@ import numpy as np
 from firmware import params as fp
 from hil.codec import Codec
 from hil.config import MODE_BY_NAME, VehicleConfig
-from hil.ecu_params import DesignOptions, build, with_controllers
+from calib.ecu_params import build, with_controllers
+from calib.options import DesignOptions
 from hil.metrics import rms
 from hil.nodes import AppNode, EcuNode, PlantNode, run_in_process
 from hil.road import GRADES, Route

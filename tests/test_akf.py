@@ -8,7 +8,8 @@ from filterpy.kalman import KalmanFilter
 from firmware import akf
 from hil import sil
 from hil.config import default_vehicle
-from hil.ecu_params import DesignOptions, build
+from calib.ecu_params import build
+from calib.options import DesignOptions
 from hil.road import constant_route
 
 CFG = default_vehicle()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from hil.config import default_vehicle, load_vehicle
-from hil.model import linear_model, output_covariance, passive_rms
+from calib.model import linear_model, output_covariance, passive_rms
 from hil.road import gq_of
 from tools.analysis import limits, passive, thresholds
-from tools.linear import Normalised, physical_limits
+from calib.linear import Normalised, physical_limits
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()

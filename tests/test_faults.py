@@ -12,12 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from firmware import ecu, safety
+from firmware import safety
 from hil import faults
 from hil.buslog import read_log
 from hil.codec import Codec
 from hil.config import default_vehicle
-from hil.ecu_params import build
+from calib.ecu_params import build
 from hil.nodes import ID
 from tests.procutil import children, cmdline
 
@@ -91,7 +91,7 @@ def test_campaign_is_the_same_in_one_process(campaign_dir, tmp_path):
 
 def test_the_judge_fails_an_ecu_that_ignores_faults(tmp_path, monkeypatch):
     """Sabotage: safety-relevant faults no longer disable the bridge. The campaign must say so."""
-    monkeypatch.setattr(ecu, "SAFETY_RELEVANT", 0)
+    monkeypatch.setattr(safety, "SAFETY_RELEVANT", 0)
     res = faults.campaign(tmp_path, in_process=True, names=["checksum", "adc_stuck_rail",
                                                             "unknown_id"])
     by = {r.fault: r for r in res}

@@ -10,7 +10,7 @@ from firmware import actuator, adc, ecu, modes
 from firmware import params as fp
 from firmware.control import bppid, pid
 from hil.config import default_vehicle
-from hil.ecu_params import build
+from calib.ecu_params import build
 
 P = build(default_vehicle())
 
@@ -267,7 +267,7 @@ def test_paper_table2_rule():
 
 def test_sil_refuses_an_ecu_tick_that_differs_from_the_plant_step():
     from hil import sil
-    from hil.ecu_params import DesignOptions
+    from calib.options import DesignOptions
     from hil.road import constant_route
 
     other = build(default_vehicle(), DesignOptions(dt_s=0.002))

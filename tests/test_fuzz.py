@@ -124,7 +124,7 @@ FRAMES = st.lists(st.tuples(st.one_of(st.sampled_from(KNOWN_IDS), st.integers(0,
 @settings(max_examples=200, derandomize=True, deadline=None)
 @given(junk=st.lists(FRAMES, min_size=1, max_size=6))
 def test_random_frames_never_crash_a_node_and_never_drive_the_bridge_blind(junk):
-    from firmware.ecu import SAFETY_RELEVANT
+    from firmware.safety import SAFETY_RELEVANT
 
     plant, ecu_node, app = _nodes()
     for burst in junk:

@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 
 from hil.config import default_vehicle, load_vehicle
 from hil.drive import drive
-from hil.model import linear_model, passive_rms
+from calib.model import linear_model, passive_rms
 from hil.plant import QuarterCarPlant
 from hil.road import constant_route, make_segment, Route
 

@@ -12,9 +12,9 @@ import pytest
 
 from hil import sil
 from hil.config import default_vehicle
-from hil.model import linear_model
+from calib.model import linear_model
 from hil.road import constant_route, gq_of, load_route
-from tools.linear import physical_limits
+from calib.linear import physical_limits
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()
@@ -106,7 +106,7 @@ def test_same_seed_same_trace_and_sim_cli_contract():
 
 def test_the_bumpless_check_catches_a_step():
     """Without the crossfade (a one-tick ramp) a mode switch steps the force command."""
-    from hil.ecu_params import DesignOptions
+    from calib.options import DesignOptions
 
     _, trace = sil.run(CFG, load_route("city"), "auto", 1, opts=DesignOptions(ramp_s=0.001))
     with pytest.raises(AssertionError):

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from hil.config import ConfigError, default_vehicle, load_vehicle
-from hil.ecu_params import DesignOptions, default_gains_path, load_gains
-from hil.model import linear_model
+from calib.ecu_params import default_gains_path, load_gains
+from calib.options import DesignOptions
+from calib.model import linear_model
 from hil.road import gq_of
-from tools.linear import RelativeFamily, physical_limits
-from tools.tune_ga_lqr import tune
+from calib.linear import RelativeFamily, physical_limits
+from calib.galqr import tune
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()

@@ -1,3 +1,3 @@
 """Offline engineering tools: analysis, tuning, table generation."""
 
-import hil  # noqa: F401  (first: pins OpenBLAS's kernels before numpy loads, hil.blas)
+import calib  # noqa: F401  (first: pins OpenBLAS's kernels before numpy loads, calib.blas)

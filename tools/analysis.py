@@ -16,9 +16,9 @@ from hil.cli import (add_json_argument, add_vehicle_argument, emit, grade_arg, p
                      progress_bar, seed_arg, speed_arg, vehicle_or_exit)
 from hil.config import VehicleConfig
 from hil.drive import drive
-from hil.model import linear_model, passive_rms
+from calib.model import linear_model, paper_thresholds, passive_rms
 from hil.road import DEFAULT_CUTOFF_N_PER_M, constant_route, gq_of
-from tools.linear import physical_limits
+from calib.linear import physical_limits
 
 SETTLE_S = 5.0
 
@@ -51,9 +51,7 @@ def passive(cfg: VehicleConfig, grade: str, speed: float, convention: str = "iso
 def thresholds(cfg: VehicleConfig, convention: str = "iso",
                cutoff: float = DEFAULT_CUTOFF_N_PER_M) -> dict:
     """Eq. (24)-(26): passive RMS values that bound the B and C roads over 10-30 m/s."""
-    dtd1 = passive_rms(_model(cfg, "B", 30.0, convention, cutoff))[2]
-    ba1 = passive_rms(_model(cfg, "B", 10.0, convention, cutoff))[0]
-    ba2 = passive_rms(_model(cfg, "C", 30.0, convention, cutoff))[0]
+    dtd1, ba1, ba2 = paper_thresholds(cfg.vehicle, convention, cutoff)
     return {"convention": convention, "vehicle": cfg.source, "dtd1_m": dtd1, "ba1_mps2": ba1,
             "ba2_mps2": ba2,
             "definitions": {"dtd1_m": "passive DTD RMS, grade B, 30 m/s (Eq. 24)",

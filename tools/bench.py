@@ -9,7 +9,7 @@ Keys (the contract): ``ecu_step_us_p50``, ``ecu_step_us_p99`` (float path),
 (``hil run --pace lockstep`` over the hub), ``realtime_missed_deadline_ratio`` (60 s at 1 kHz,
 ``--pace realtime``), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
 machine: ``cpu_model``, ``cpu_count``, ``python``, ``blas_cores``, ``blas_threads``
-(OpenBLAS's kernels and threads, ``hil.blas``). ``--quick`` shortens every run (a smoke test
+(OpenBLAS's kernels and threads, ``calib.blas``). ``--quick`` shortens every run (a smoke test
 of the tool, not a measurement). Each figure is measured on this machine, once; run it on an
 otherwise idle machine.
 """
@@ -99,7 +99,7 @@ def hil_run(pace: str, duration_s: float | None) -> dict:
 
 def ga_tune_s() -> float:
     from hil.config import default_vehicle
-    from tools.tune_ga_lqr import tune
+    from calib.galqr import tune
 
     t0 = time.perf_counter()
     tune(default_vehicle())
@@ -112,7 +112,7 @@ def run(quick: bool, progress=print) -> dict:
                  "python": platform.python_version(), "quick": quick}
     import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS too)
 
-    from hil.blas import loaded_cores, loaded_threads
+    from calib.blas import loaded_cores, loaded_threads
     out["blas_cores"], out["blas_threads"] = loaded_cores(), loaded_threads()
     progress("ECU step, float path ...")
     t = ecu_step_times(step_s, False)

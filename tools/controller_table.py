@@ -13,9 +13,9 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 
 from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
-from hil.model import linear_model
+from calib.model import linear_model
 from hil.road import constant_route, gq_of
-from tools.linear import physical_limits
+from calib.linear import physical_limits
 
 # controller -> the mode it runs in
 RUNS = (("bppid", "comfort"), ("pid", "comfort"), ("skyhook", "comfort"), ("lqr", "safety"),

@@ -39,7 +39,8 @@ from firmware.fixedpoint import INT32_MIN, best_frac, to_fixed
 from firmware.params import CTRL_NAMES, MODE_NAMES, EcuParams
 from hil.cli import add_json_argument, add_vehicle_argument, emit, fail, vehicle_or_exit
 from hil.config import ConfigError, VehicleConfig
-from hil.ecu_params import DesignOptions, build, default_gains_path
+from calib.ecu_params import build, default_gains_path
+from calib.options import DesignOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "c" / "generated"

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg import expm, solve_continuous_lyapunov
 
-from hil.config import VehicleParams
-from hil.road import DEFAULT_CUTOFF_N_PER_M, road_noise_gain
+from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_noise_gain
+
+if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
+    from hil.config import VehicleParams
 
 OUTPUTS = ("ba", "sws", "dtd")
 
@@ -100,3 +103,14 @@ def van_loan_integral(M: np.ndarray, Q: np.ndarray, dt: float) -> np.ndarray:
     E = expm(big * dt)
     W = E[n:, n:].T @ E[:n, n:]
     return 0.5 * (W + W.T)
+
+
+def paper_thresholds(vp: VehicleParams, convention: str = "iso",
+                     cutoff_n_per_m: float = DEFAULT_CUTOFF_N_PER_M) -> tuple[float, float, float]:
+    """Eq. (24)-(26): (dtd1, ba1, ba2), the passive RMS values that bound the B and C roads
+    over 10-30 m/s: DTD of grade B at 30 m/s, BA of grade B at 10 m/s, BA of grade C at 30 m/s."""
+    def model(grade: str, speed: float) -> LinearModel:
+        return linear_model(vp, GRADE_GQ_M3[grade], speed, convention, cutoff_n_per_m)
+
+    return (float(passive_rms(model("B", 30.0))[2]), float(passive_rms(model("B", 10.0))[0]),
+            float(passive_rms(model("C", 30.0))[0]))

@@ -1,54 +1,32 @@
-"""Build the ECU calibration (``firmware.params.EcuParams``) from a vehicle file, the design
-tools and the GA-LQR gains file. This is the offline side: it may use scipy; the firmware only
-receives numbers.
+"""Build the ECU calibration (``firmware.params.EcuParams``) from a vehicle, the design options
+(``calib.options``) and the GA-LQR gains file. This is the offline side: it may use scipy; the
+firmware only receives numbers.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg import expm
 
+from calib.errors import ConfigError
+from calib.galqr import tune, vehicle_digest
+from calib.iso8608 import CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M
+from calib.linear import safety_design
+from calib.model import (linear_model, mechanics, paper_thresholds, state_covariance,
+                         van_loan_integral)
+from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from firmware import params as fp
-from hil.config import PACKAGE_DIR, ConfigError, VehicleConfig, default_vehicle
-from hil.model import linear_model, mechanics, state_covariance, van_loan_integral
-from hil.road import (CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M)
 
-GAINS_DIR = PACKAGE_DIR / "gains"
-NOMINAL_SPEED_MPS = 20.0
+if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
+    from hil.config import VehicleConfig
 
-
-@dataclass(frozen=True)
-class DesignOptions:
-    """Design choices of the calibration (documented defaults)."""
-
-    dt_s: float = 0.001
-    use_wheel_accel: bool = True          # AKF measurement vector [BA, SWS, WA] vs [BA, SWS]
-    akf_adaptive: bool = True
-    akf_bias_adaptive: bool = False
-    akf_forgetting: float = 0.9995
-    akf_q_grade: str = "C"                # road intensity the AKF assumes before a grade estimate
-    akf_q_follows_grade: bool = True      # then the estimated G_q, at most the nominal
-    classifier: int = 0                   # 0 road estimate (default), 1 paper's Table 2
-    safety_bound: float = 0.955           # LQR safety design: BA, SWS <= bound * passive
-    comprehensive_bound: tuple = (0.95, 0.95, 0.95)  # GA-LQR constraint (44) with margins,
-    # per output [BA, SWS, DTD]: the ECU's estimation and force tracking cost a few per cent
-    skyhook_c: float = 3000.0
-    pid_ki: float = 3500.0
-    bp_scale: tuple = (10.0, 3000.0, 0.02)   # K_d: the loop K_d / (m_s dt) must stay well below 1
-    bp_eta: float = 0.02
-    bp_alpha: float = 0.05
-    bp_seed: int = 7
-    regen_c: float = 550.0
-    regen_skyhook_c: float = 1200.0
-    regen_min_voltage_ratio: float = 0.5
-    ramp_s: float = 0.3
-    initial_mode: int = fp.MODE_PASSIVE
+GAINS_DIR = Path(__file__).resolve().parent / "gains"
 
 
 def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
@@ -98,10 +76,6 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
                         adaptive=opts.akf_adaptive, bias_adaptive=opts.akf_bias_adaptive, p0=p0)
 
 
-GRADE_HP_HZ = 0.5
-GRADE_LP_HZ = 20.0
-
-
 def grade_band_variance(speed: float, dt: float, hp_a: float, lp_a: float,
                         convention: str = "iso") -> float:
     """Variance of the band-passed road velocity for a unit-G_q road at ``speed``: the exact
@@ -118,28 +92,20 @@ def grade_band_variance(speed: float, dt: float, hp_a: float, lp_a: float,
 
 
 def grade_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.GradeParams:
-    from tools.analysis import thresholds
-
     dt = opts.dt_s
-    rc_h = 1 / (2 * math.pi * GRADE_HP_HZ)
-    rc_l = 1 / (2 * math.pi * GRADE_LP_HZ)
+    rc_h = 1 / (2 * math.pi * opts.grade_hp_hz)
+    rc_l = 1 / (2 * math.pi * opts.grade_lp_hz)
     hp_a, lp_a = rc_h / (rc_h + dt), dt / (rc_l + dt)
     speeds = np.arange(1.0, 61.0, 1.0)
     var = np.array([grade_band_variance(v, dt, hp_a, lp_a) for v in speeds])
-    th = thresholds(cfg, "iso")
+    dtd1, ba1, ba2 = paper_thresholds(cfg.vehicle, "iso")
     return fp.GradeParams(
-        classifier=opts.classifier, hp_a=hp_a, lp_a=lp_a, block_ticks=int(round(0.25 / dt)),
-        n_blocks=6, speed_grid=speeds, var_per_gq=var,
-        gq_centres=np.array([GRADE_GQ_M3[g] for g in "ABCD"]), hysteresis=0.15,
-        dwell_ticks=int(round(0.5 / dt)), min_speed=2.0,
-        dtd1=th["dtd1_m"], ba1=th["ba1_mps2"], ba2=th["ba2_mps2"])
-
-
-def vehicle_digest(cfg: VehicleConfig) -> str:
-    v = cfg.vehicle
-    text = json.dumps([v.sprung_mass_kg, v.unsprung_mass_kg, v.spring_stiffness_n_per_m,
-                       v.damping_n_s_per_m, v.tire_stiffness_n_per_m])
-    return hashlib.sha256(text.encode()).hexdigest()
+        classifier=opts.classifier, hp_a=hp_a, lp_a=lp_a,
+        block_ticks=int(round(opts.grade_block_s / dt)), n_blocks=opts.grade_blocks,
+        speed_grid=speeds, var_per_gq=var,
+        gq_centres=np.array([GRADE_GQ_M3[g] for g in "ABCD"]), hysteresis=opts.grade_hysteresis,
+        dwell_ticks=int(round(opts.grade_dwell_s / dt)), min_speed=opts.grade_min_speed_mps,
+        dtd1=dtd1, ba1=ba1, ba2=ba2)
 
 
 def default_gains_path(cfg: VehicleConfig) -> Path:
@@ -171,19 +137,14 @@ def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path
     shipped = default_gains_path(cfg)
     if shipped.exists():
         return load_gains(shipped, cfg)
-    from tools.tune_ga_lqr import tune
-
     result = tune(cfg, 0, opts.comprehensive_bound)
     if not result["feasible"]:
         raise ConfigError(f"{cfg.source}: GA-LQR found no gains meeting Eq. (44) with margin")
     return np.array(result["K"])
 
 
-def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
+def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
           gains_file: Path | None = None) -> fp.EcuParams:
-    from tools.linear import safety_design
-
-    cfg = cfg or default_vehicle()
     opts = opts or DesignOptions()
     vp, ap, sp = cfg.vehicle, cfg.actuator, cfg.sensors
     dt = opts.dt_s
@@ -192,7 +153,8 @@ def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
         return fp.AdcChannel(range_min=c.range_min, lsb=c.lsb, full_scale=2 ** c.bits - 1)
 
     adc = fp.AdcParams(chan(sp.body_accel), chan(sp.wheel_accel), chan(sp.susp_defl),
-                       chan(sp.motor_current), chan(sp.speed), rail_ticks=3, recover_ticks=50)
+                       chan(sp.motor_current), chan(sp.speed), rail_ticks=opts.adc_rail_ticks,
+                       recover_ticks=opts.adc_recover_ticks)
     plant = fp.PlantParams(vp.sprung_mass_kg, vp.unsprung_mass_kg, vp.spring_stiffness_n_per_m,
                            vp.damping_n_s_per_m, vp.tire_stiffness_n_per_m,
                            ap.viscous_friction_n_s_per_m, ap.force_constant_n_per_a,
@@ -203,11 +165,11 @@ def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
     k_safety = safety_design(model, opts.safety_bound).K
     k_comp = comprehensive_gain(cfg, opts, gains_file)
     rng = np.random.default_rng(opts.bp_seed)
-    force_limit = 0.95 * ap.current_limit_a * ap.force_constant_n_per_a * ap.screw_efficiency
+    force_limit = opts.force_limit_margin * ap.current_limit_a * ap.force_constant_n_per_a * ap.screw_efficiency
     control = fp.ControlParams(
         k_safety=k_safety, k_comprehensive=k_comp, skyhook_c=opts.skyhook_c,
         skyhook_passive_c=0.0, pid_kp=0.0, pid_ki=opts.pid_ki, pid_kd=0.0,
-        pid_leak=1.0 - dt / 1.5,
+        pid_leak=1.0 - dt / opts.pid_leak_s,
         bp_w_hidden=rng.normal(0.0, 0.5, (5, 4)), bp_b_hidden=rng.normal(0.0, 0.5, 5),
         bp_w_out=rng.normal(0.0, 0.5, (3, 5)), bp_b_out=np.zeros(3),
         bp_eta=opts.bp_eta, bp_alpha=opts.bp_alpha, bp_scale=np.array(opts.bp_scale, dtype=float),
@@ -215,15 +177,17 @@ def build(cfg: VehicleConfig | None = None, opts: DesignOptions | None = None,
         regen_min_voltage_ratio=opts.regen_min_voltage_ratio, force_limit=force_limit)
     a = math.exp(-ap.winding_resistance_ohm * dt / ap.winding_inductance_h)
     bc = (1 - a) / ap.winding_resistance_ohm
-    actuator = fp.ActuatorParams(current_a=a, current_b=bc, ki=0.2 / bc,
-                                 integ_limit=0.2 * ap.bus_voltage_v)
+    actuator = fp.ActuatorParams(current_a=a, current_b=bc, ki=opts.current_ki_ratio / bc,
+                                 integ_limit=opts.current_integ_limit_ratio * ap.bus_voltage_v)
     controllers = (fp.CTRL_NONE, fp.CTRL_REGEN, fp.CTRL_BPPID, fp.CTRL_LQR, fp.CTRL_GALQR)
     static_defl = vp.static_tire_load_n / vp.tire_stiffness_n_per_m
     modes = fp.ModeParams(ramp_ticks=int(round(opts.ramp_s / dt)),
-                          safety_dtd_rms_limit=0.55 * static_defl, safety_exit_ratio=0.8,
-                          safety_window_ticks=int(round(1.0 / dt)),
-                          safety_hold_ticks=int(round(2.0 / dt)),
-                          initial_mode=opts.initial_mode, controllers=controllers)
+                          safety_dtd_rms_limit=opts.safety_dtd_limit * static_defl,
+                          safety_exit_ratio=opts.safety_exit_ratio,
+                          safety_window_ticks=int(round(opts.safety_window_s / dt)),
+                          safety_hold_ticks=int(round(opts.safety_hold_s / dt)),
+                          initial_mode=opts.initial_mode, controllers=controllers,
+                          request_min_ticks=int(round(opts.request_min_s / dt)))
     return fp.EcuParams(dt_s=dt, adc=adc, plant=plant, akf=akf_model(cfg, opts),
                         grade=grade_params(cfg, opts), modes=modes, control=control,
                         actuator=actuator, akf_q_follows_grade=opts.akf_q_follows_grade,

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.linalg import solve_continuous_are
 from scipy.optimize import minimize
 
-from hil.model import LinearModel, output_covariance, passive_rms, state_covariance
+from calib.model import LinearModel, output_covariance, passive_rms, state_covariance
 
 # Regularisers in scaled units (every passive variance is 1): a tiny weight on the force and on
 # every state keeps the Riccati equation well posed at the corners of the weight space (e.g. no

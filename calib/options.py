@@ -1,0 +1,122 @@
+"""Every design choice of the calibration in one object, ``DesignOptions``, with documented
+defaults; a TOML file can override any of them (``load_options``: a ``[design]`` table whose
+keys are the field names; an unknown key, a wrong type or a bad value is one ``ConfigError``
+line naming the file and the key)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from calib.errors import ConfigError
+from firmware.params import MODE_PASSIVE
+
+NOMINAL_SPEED_MPS = 20.0      # speed of the designs' linear models (the paper's v0)
+
+
+@dataclass(frozen=True)
+class DesignOptions:
+    """Design choices of the calibration (documented defaults)."""
+
+    dt_s: float = 0.001
+    # ADC plausibility (firmware.adc)
+    adc_rail_ticks: int = 3               # consecutive samples at a rail that make a fault
+    adc_recover_ticks: int = 50           # consecutive good samples that clear it
+    # AKF (firmware.akf)
+    use_wheel_accel: bool = True          # AKF measurement vector [BA, SWS, WA] vs [BA, SWS]
+    akf_adaptive: bool = True
+    akf_bias_adaptive: bool = False
+    akf_forgetting: float = 0.9995
+    akf_q_grade: str = "C"                # road intensity the AKF assumes before a grade estimate
+    akf_q_follows_grade: bool = True      # then the estimated G_q, at most the nominal
+    # grade estimate (firmware.grade)
+    classifier: int = 0                   # 0 road estimate (default), 1 paper's Table 2
+    grade_hp_hz: float = 0.5              # band of the road-velocity estimate
+    grade_lp_hz: float = 20.0
+    grade_block_s: float = 0.25           # variance blocks ...
+    grade_blocks: int = 6                 # ... in the window (1.5 s)
+    grade_hysteresis: float = 0.15        # in grade units (log4 G_q)
+    grade_dwell_s: float = 0.5            # a new grade must persist this long
+    grade_min_speed_mps: float = 2.0      # below this the estimate freezes
+    # modes and the road-holding override (firmware.modes)
+    ramp_s: float = 0.3                   # crossfade on a controller change
+    initial_mode: int = MODE_PASSIVE
+    safety_dtd_limit: float = 0.55        # override when the DTD RMS exceeds this x static defl.
+    safety_exit_ratio: float = 0.8        # leave it below limit x this ...
+    safety_hold_s: float = 2.0            # ... after at least this long in it
+    safety_window_s: float = 1.0          # RMS window of the road-holding check
+    request_min_s: float = 0.25           # a new driver request sooner than this is spam
+    # controllers (firmware.control)
+    safety_bound: float = 0.955           # LQR safety design: BA, SWS <= bound * passive
+    comprehensive_bound: tuple = (0.95, 0.95, 0.95)  # GA-LQR constraint (44) with margins,
+    # per output [BA, SWS, DTD]: the ECU's estimation and force tracking cost a few per cent
+    skyhook_c: float = 3000.0
+    pid_ki: float = 3500.0
+    pid_leak_s: float = 1.5               # time constant of the incremental PID's leak
+    bp_scale: tuple = (10.0, 3000.0, 0.02)   # K_d: the loop K_d / (m_s dt) must stay well below 1
+    bp_eta: float = 0.02
+    bp_alpha: float = 0.05
+    bp_seed: int = 7
+    regen_c: float = 550.0
+    regen_skyhook_c: float = 1200.0
+    regen_min_voltage_ratio: float = 0.5
+    force_limit_margin: float = 0.95      # force limit: this x the current limit's force
+    # current loop (firmware.actuator)
+    current_ki_ratio: float = 0.2         # integral gain as a fraction of the deadbeat gain
+    current_integ_limit_ratio: float = 0.2   # integral clamp as a fraction of the bus voltage
+
+
+def load_options(path: str | Path, base: DesignOptions | None = None) -> DesignOptions:
+    """``base`` (default: the defaults) with the ``[design]`` table of a TOML file applied."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read design file: {exc.strerror or exc}") from None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    unknown = set(data) - {"design"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown table or key '{sorted(unknown)[0]}' (only [design])")
+    table = data.get("design", {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: 'design' must be a table")
+    base = base or DesignOptions()
+    fields = {f.name: f for f in dataclasses.fields(DesignOptions)}
+    changes = {}
+    for key, value in table.items():
+        if key not in fields:
+            raise ConfigError(f"{path}: unknown key 'design.{key}'")
+        changes[key] = _checked(path, key, value, getattr(base, key))
+    return dataclasses.replace(base, **changes)
+
+
+def _checked(path: Path, key: str, value, default):
+    where = f"{path}: key 'design.{key}'"
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+        return value
+    if isinstance(default, tuple):
+        if (not isinstance(value, list) or len(value) != len(default)
+                or not all(_is_number(v) and math.isfinite(v) and v > 0 for v in value)):
+            raise ConfigError(f"{where} must be a list of {len(default)} positive numbers")
+        return tuple(float(v) for v in value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ConfigError(f"{where} must be a non-negative integer, got {value!r}")
+        return value
+    if not _is_number(value) or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{where} must be a positive finite number, got {value!r}")
+    return float(value)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
