@@ -33,15 +33,9 @@ class AdcState:
     channels: dict = field(default_factory=lambda: {name: ChannelState() for name in CHANNELS})
 
 
-def sample(params: AdcParams, state: AdcState, raw: dict) -> tuple[dict, int]:
-    """Convert one sample of every channel. Returns ({name: SI value}, fault bits)."""
-    values, faults = sample_counts(params, state, tuple(raw.get(name) for name in CHANNELS))
-    return dict(zip(CHANNELS, values)), faults
-
-
-def sample_counts(params: AdcParams, state: AdcState, counts: tuple) -> tuple[tuple, int]:
-    """``sample`` with the counts and the SI values as tuples in ``CHANNELS`` order (the
-    ECU's path: no dictionaries)."""
+def sample(params: AdcParams, state: AdcState, counts: tuple) -> tuple[tuple, int]:
+    """Convert one sample of every channel: the counts in ``CHANNELS`` order (one per channel,
+    else ValueError) -> (the SI values in that order, fault bits)."""
     values = []
     faults = 0
     rail_ticks, recover_ticks = params.rail_ticks, params.recover_ticks

@@ -1,7 +1,7 @@
 """The ECU: one deterministic fixed-step function, ``step(state, inputs) -> (state, outputs)``.
 
-``init`` chooses the arithmetic path once (``firmware.path``: float, or the fixed-point control
-path when given its tables); ``step`` reads top to bottom, one stage per comment line: what it
+``init`` takes the arithmetic path once (``firmware.path``: ``FloatPath`` by default, or
+``FixedPath``, the integer control path); ``step`` reads top to bottom, one stage per comment line: what it
 uses, what it gives. Time enters only as the tick count in the inputs.
 """
 
@@ -13,7 +13,6 @@ from typing import NamedTuple
 
 from firmware import adc, akf, grade, modes, safety
 from firmware.fixedpoint import round_half_away as rha
-from firmware.fx.tables import FxTables
 from firmware.params import MODE_ENERGY, EcuParams
 from firmware.path import FixedPath, FloatPath
 
@@ -66,11 +65,11 @@ class EcuState:
     tick: int = -1
 
 
-def init(params: EcuParams, fx_tables: FxTables | None = None, record: bool = False) -> EcuState:
-    """The ECU's state. With ``fx_tables`` (``calib.fx_tables.build_tables``) the control path
-    runs in integer arithmetic (``firmware.fx``) instead of float; ``record``: it keeps its
-    per-tick inputs and outputs (the trace the C parity test replays)."""
-    path = FloatPath(params) if fx_tables is None else FixedPath(params, fx_tables, record)
+def init(params: EcuParams, path: FloatPath | FixedPath | None = None) -> EcuState:
+    """The ECU's state, with the arithmetic of stages 2 and 5-6: ``path`` (default
+    ``FloatPath(params)``; ``FixedPath(params, tables, record)`` runs the control path in
+    integers, ``firmware.fx``, with the tables the calibration builds for it)."""
+    path = FloatPath(params) if path is None else path
     return EcuState(params=params, path=path, adc=adc.AdcState(), akf=akf.init(params.akf),
                     grade=grade.GradeState(), modes=modes.init(params.modes))
 
@@ -79,7 +78,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     P, path = st.params, st.path
     st.tick = inp.tick
     # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault)
-    (ba, wa, defl, i_meas, speed), faults = adc.sample_counts(P.adc, st.adc, (
+    (ba, wa, defl, i_meas, speed), faults = adc.sample(P.adc, st.adc, (
         inp.body_accel, inp.wheel_accel, inp.susp_defl, inp.motor_current, inp.speed))
     faults |= inp.link_faults
     # 2. AKF: predict with the force from the measured current, correct with [BA, SWS, WA]

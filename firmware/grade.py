@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass, field
 
 
-from firmware.jit import njit
+from firmware.kernels.grade import interp
 from firmware.params import GRADE_UNKNOWN, GradeParams
 
 CLASSIFIER_ROAD = 0
@@ -51,29 +51,6 @@ class GradeState:
 
 def var_per_gq(params: GradeParams, speed: float) -> float:
     return interp(float(speed), params.speed_grid, params.var_per_gq)
-
-
-@njit
-def interp(x, xp, fp):
-    """np.interp for one point, with numpy's formula (the same bits): linear between grid
-    points, the end values outside, NaN for NaN."""
-    n = xp.shape[0]
-    if math.isnan(x):
-        return math.nan
-    if x <= xp[0]:
-        return fp[0]
-    if x >= xp[n - 1]:
-        return fp[n - 1]
-    j = 0
-    while xp[j + 1] <= x:
-        j += 1
-    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-    r = slope * (x - xp[j]) + fp[j]
-    if math.isnan(r):
-        r = slope * (x - xp[j + 1]) + fp[j + 1]
-        if math.isnan(r) and fp[j] == fp[j + 1]:
-            r = fp[j]
-    return r
 
 
 def paper_rule(dtd_rms: float, ba_rms: float, params: GradeParams) -> int:

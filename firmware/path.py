@@ -102,7 +102,7 @@ class FixedPath:
         fx_akf.correct(T, fs, k_q, r_q)
         st.akf.x = np.array([to_float(v, f) for v, f in zip(fs.x, STATE_FRAC)])
         self._in = [counts, tuple(k_q), tuple(r_q), False]
-        return to_float(fs.force_meas, F_FORCE), akf.all_finite(st.akf.x, st.akf.P)
+        return to_float(fs.force_meas, F_FORCE), akf.finite(st.akf)
 
     def reset_estimate(self, st) -> None:
         st.akf = akf.init(st.params.akf)

@@ -12,8 +12,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hil.cli import (add_json_argument, add_vehicle_argument, positive_float, route_or_exit,
-                     seed_arg, vehicle_or_exit)
+from hil import config
+from hil.cli import (add_design_argument, add_json_argument, add_vehicle_argument,
+                     positive_float, route_or_exit, seed_arg, vehicle_or_exit)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=seed_arg, default=1)
     p.add_argument("--gains", metavar="FILE", help="GA-LQR gains file (default: the shipped "
                    "one for this vehicle, or tuned on the fly)")
+    add_design_argument(p)
     p.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop after S simulated seconds (default: the whole route)")
     p.add_argument("--out", metavar="DIR", help="write DIR/report.json, report.md, figures "
@@ -90,8 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-MODE_CHOICES = ("auto", "passive", "comfort", "safety", "comprehensive", "regen")
-CONTROLLER_CHOICES = ("pid", "bppid", "lqr", "galqr", "skyhook", "regen")
+MODE_CHOICES = config.MODE_CHOICES
+CONTROLLER_CHOICES = tuple(config.CONTROLLERS)
 
 
 def _driver_arguments(p) -> None:
@@ -111,10 +113,10 @@ def _fixed_argument(p) -> None:
 def _node_parsers(sub) -> None:
     from can.cli import add_bus_arguments
 
-    def common(p, pace=True):
+    def common(p, pace=True, out_help="write DIR/<node>.json and .npz at the end (default: "
+                                       "print the summary)"):
         add_bus_arguments(p)
-        p.add_argument("--out", metavar="DIR", help="write DIR/<node>.json and .npz at the end "
-                       "(default: print the summary)")
+        p.add_argument("--out", metavar="DIR", help=out_help)
         add_vehicle_argument(p)
         if pace:
             p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep")
@@ -130,11 +132,13 @@ def _node_parsers(sub) -> None:
     p.add_argument("--controller", choices=CONTROLLER_CHOICES)
     p.add_argument("--seed", type=seed_arg, default=1)
     p.add_argument("--gains", metavar="FILE")
+    add_design_argument(p)
     p.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop after S simulated seconds (default: the whole route)")
     _driver_arguments(p)
     _fixed_argument(p)
-    common(p)
+    common(p, out_help="write bus.log, report.json, report.md, the figures and each node's "
+                       "record and log into DIR (default: out/run)")
     p.set_defaults(out="out/run", rt_priority=None)
     add_json_argument(p)
 
@@ -151,6 +155,7 @@ def _node_parsers(sub) -> None:
                    help="only used with --controller (the mode whose controller it replaces)")
     p.add_argument("--controller", choices=CONTROLLER_CHOICES)
     p.add_argument("--gains", metavar="FILE")
+    add_design_argument(p)
     _fixed_argument(p)
     common(p)
 
@@ -187,7 +192,7 @@ def _sim(args) -> int:
     from pathlib import Path
 
     from hil import sil
-    from hil.cli import fail, progress_bar
+    from hil.cli import design_or_exit, fail, progress_bar
     from hil.buslog import BusLogFile
     from hil.config import ConfigError, load_driver_script
     from hil.figures import write_outputs
@@ -196,6 +201,7 @@ def _sim(args) -> int:
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route)
+    opts = design_or_exit(args.design)
     if args.driver == "script" and not args.script:
         fail("sim: --driver script needs --script FILE")
     log = clock = None
@@ -207,7 +213,7 @@ def _sim(args) -> int:
         with progress_bar(f"SIL {route.name} ({args.mode})", not args.json) as progress:
             report, trace = sil.run(
                 cfg, route, args.mode, args.seed, controller=args.controller,
-                gains_file=Path(args.gains) if args.gains else None, policy=args.driver,
+                gains_file=Path(args.gains) if args.gains else None, opts=opts, policy=args.driver,
                 script=script, progress=progress, duration_s=args.duration,
                 fixed_point=args.fixed_point,
                 on_frame=(lambda fid, data: log.write(fid, data, clock.stamp(fid)))

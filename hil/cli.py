@@ -25,6 +25,24 @@ def add_vehicle_argument(parser: argparse.ArgumentParser) -> None:
                         help="vehicle TOML file (default: the paper's Table 3 car)")
 
 
+def add_design_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--design", metavar="FILE", default=None,
+                        help="design options TOML ([design] table; calib.options; default: "
+                             "the documented defaults)")
+
+
+def design_or_exit(path: str | None):
+    """The design options of ``--design FILE`` (None without it); a bad file exits 2."""
+    if path is None:
+        return None
+    from calib.options import load_options
+
+    try:
+        return load_options(path)
+    except ConfigError as exc:
+        fail(str(exc))
+
+
 def add_json_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object on stdout instead of a table")

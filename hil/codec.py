@@ -2,8 +2,9 @@
 
 Encoding rounds physical values to raw integers half away from zero and saturates at the
 signal's raw range (cantools' own scaling rounds to even and may raise or wrap: cantools
-#635/#462), then packs the raw values with cantools and seals COUNTER and CHECKSUM with
-``firmware.safety``. Decoding checks DLC and CHECKSUM with ``firmware.safety`` before it
+#635/#462), packs the raw values from cantools' signal layout (worked out once per message: a
+plan) and seals COUNTER and CHECKSUM with ``firmware.safety``. Every signal is little-endian
+(DESIGN.md section 3); a DBC with a big-endian signal is refused when it is loaded. Decoding checks DLC and CHECKSUM with ``firmware.safety`` before it
 unpacks, then every signal against the DBC's declared [minimum, maximum] (RANGE); it never
 raises on bad input.
 """
@@ -109,23 +110,24 @@ class Codec:
                 checksum_byte=checksum.start // 8 if checksum is not None else None)
         self._by_name = {m.name: m for m in self.db.messages}
         self._by_id = {m.frame_id: m for m in self.db.messages}
-        # the packing of every message, worked out once (all signals little-endian, as in
-        # our DBC); a message with a big-endian signal goes through cantools' own packer
+        # the packing of every message, worked out once (every signal little-endian)
         self._plans: dict = {}
         for m in self.db.messages:
-            plan = None
+            big = [sig.name for sig in m.signals if sig.byte_order != "little_endian"]
+            if big:
+                raise ValueError(f"{path}: {m.name}.{big[0]} is big-endian; the bench's codec "
+                                 f"packs little-endian signals only")
             packed = [sig for sig in m.signals if sig.name not in ("COUNTER", "CHECKSUM")]
-            if all(sig.byte_order == "little_endian" for sig in m.signals):
-                plan = _Plan(
-                    name=m.name, frame_id=m.frame_id, length=m.length,
-                    spec=self.specs[m.frame_id],
-                    names=tuple(sig.name for sig in packed),
-                    pack=tuple((sig.start, (1 << sig.length) - 1, *raw_range(sig))
-                               for sig in packed),
-                    unpack=tuple((sig.name, sig.start, (1 << sig.length) - 1,
-                                  1 << (sig.length - 1) if sig.is_signed else 0)
-                                 for sig in m.signals),
-                    scaled=tuple((sig.name, sig.scale, sig.offset) for sig in m.signals))
+            plan = _Plan(
+                name=m.name, frame_id=m.frame_id, length=m.length,
+                spec=self.specs[m.frame_id],
+                names=tuple(sig.name for sig in packed),
+                pack=tuple((sig.start, (1 << sig.length) - 1, *raw_range(sig))
+                           for sig in packed),
+                unpack=tuple((sig.name, sig.start, (1 << sig.length) - 1,
+                              1 << (sig.length - 1) if sig.is_signed else 0)
+                             for sig in m.signals),
+                scaled=tuple((sig.name, sig.scale, sig.offset) for sig in m.signals))
             self._plans[m.name] = self._plans[m.frame_id] = plan
         # signals whose declared range is narrower than their raw range: (name, lo, hi) raw
         self._ranges: dict[int, tuple] = {
@@ -156,15 +158,6 @@ class Codec:
     def encode_raw(self, name: str, raw_values: Mapping[str, int], counter: int = 0) -> bytes:
         """Encode raw (unscaled) integers, saturating at each signal's raw range."""
         plan = self._plans[name]
-        if plan is None:
-            m = self.message(name)
-            raw = {}
-            for sig in m.signals:
-                lo, hi = raw_range(sig)
-                v = 0 if sig.name in ("COUNTER", "CHECKSUM") else int(raw_values.get(sig.name, 0))
-                raw[sig.name] = min(hi, max(lo, v))
-            data = m.encode(raw, scaling=False, strict=False)
-            return safety.seal(self.specs[m.frame_id], data, counter)
         get = raw_values.get
         word = _pack_word(plan.pack, [get(sig, 0) for sig in plan.names])
         return safety.seal_word(plan.spec, word, plan.length, counter)
@@ -178,9 +171,6 @@ class Codec:
         unknown = set(signals) - packable
         if unknown:
             raise ValueError(f"{name} has no signal(s) {sorted(unknown)} to pack")
-        if plan is None:
-            return lambda values, counter=0: self.encode_raw(name, dict(zip(signals, values)),
-                                                             counter)
         fields = tuple(plan.pack[plan.names.index(sig)] for sig in signals)
         spec, length = plan.spec, plan.length
 
@@ -200,11 +190,6 @@ class Codec:
         if unknown:
             raise ValueError(f"{name} has no signal(s) {sorted(unknown)} to unpack")
         fid, own_spec = m.frame_id, self.specs[m.frame_id]
-        if plan is None:
-            def via_decode(data, state, tick=0, spec=None):
-                d = self.decode(fid, data, state, tick, scaling=False, spec=spec)
-                return (tuple(d.signals[sig] for sig in signals), 0) if d.ok else (None, d.faults)
-            return via_decode
         where = {sig: (start, mask, sign) for sig, start, mask, sign in plan.unpack}
         fields = tuple(where[sig] for sig in signals)
         checks = tuple((*where[sig], lo, hi) for sig, lo, hi in self._ranges[fid])
@@ -247,26 +232,18 @@ class Codec:
         if not ok:
             return Decoded(m.name, {}, False, st.faults)
         plan = self._plans[frame_id]
-        if plan is not None:
-            word = int.from_bytes(data, "little")
-            raw = {}
-            for sig, start, mask, sign in plan.unpack:
-                v = (word >> start) & mask
-                if v & sign:
-                    v -= sign << 1
-                raw[sig] = v
-        else:
-            try:
-                raw = dict(m.decode(bytes(data), decode_choices=False, scaling=False))
-            except Exception:  # noqa: BLE001 - a frame that passed DLC/CRC but does not unpack
-                return Decoded(m.name, {}, False, safety.FAULT_DLC)
+        word = int.from_bytes(data, "little")
+        raw = {}
+        for sig, start, mask, sign in plan.unpack:
+            v = (word >> start) & mask
+            if v & sign:
+                v -= sign << 1
+            raw[sig] = v
         for sig, lo, hi in self._ranges[frame_id]:
             if not lo <= raw[sig] <= hi:
                 safety.invalidate(st, safety.FAULT_RANGE)
                 return Decoded(m.name, {}, False, st.faults)
         if not scaling:
             return Decoded(m.name, raw, True, 0)
-        if plan is not None:
-            return Decoded(m.name, {sig: raw[sig] * scale + offset
-                                    for sig, scale, offset in plan.scaled}, True, 0)
-        return Decoded(m.name, dict(m.decode(bytes(data), decode_choices=False)), True, 0)
+        return Decoded(m.name, {sig: raw[sig] * scale + offset
+                                for sig, scale, offset in plan.scaled}, True, 0)

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from calib.errors import ConfigError
-from firmware.params import MODE_ENERGY, MODE_NAMES
+from firmware.params import CTRL_NAMES, MODE_ENERGY, MODE_NAMES
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_VEHICLE_FILE = PACKAGE_DIR / "vehicles" / "table3.toml"
@@ -255,7 +255,12 @@ def load_vehicle(path: str | Path | None) -> VehicleConfig:
 
 REQUEST_KINDS = ("accept", "refuse", "choose")
 # mode names of the files and the command line ("regen" = energy feedback)
+# The names of the modes and controllers on the command line and in driver scripts: the
+# firmware's (firmware.params.MODE_NAMES, CTRL_NAMES), energy feedback also as "regen".
 MODE_BY_NAME = {**{name: i for i, name in enumerate(MODE_NAMES)}, "regen": MODE_ENERGY}
+RUN_MODES = {name: i for name, i in MODE_BY_NAME.items() if name != "energy"}   # hil sim/run
+MODE_CHOICES = ("auto", *RUN_MODES)
+CONTROLLERS = {name: i for i, name in enumerate(CTRL_NAMES) if name != "none"}
 
 
 def load_driver_script(path: str | Path) -> list[tuple[float, str, int | None]]:

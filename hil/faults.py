@@ -415,7 +415,8 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
     plan.write_text(json.dumps({"windows": [asdict(w) for w in windows]}, indent=1) + "\n")
     args = argparse.Namespace(
         route=str(_route_file(out, n, dt)), mode=CAMPAIGN_MODE, controller=None, seed=seed,
-        gains=None, duration=n * dt, out=str(out), pace="lockstep", json=False, vehicle=None,
+        gains=None, design=None, duration=n * dt, out=str(out), pace="lockstep", json=False,
+        vehicle=None,
         driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
         inject=str(plan))
     with contextlib.redirect_stdout(sys.stderr):

@@ -34,6 +34,7 @@ from typing import Callable, Iterable, Optional
 import numpy as np
 
 from firmware import ecu, safety
+from firmware.path import FixedPath
 from firmware import params as fp
 from calib.fx_tables import build_tables
 from hil.codec import Codec
@@ -55,8 +56,19 @@ TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 _DUTY, _FALLBACK = len(OBS), len(OBS) + 1   # PlantNode.obs columns after plant.OBS
 TRACE = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored", "drawn",
          "duty", "fallback")                   # the plant's trace columns
-# what the trace hash takes per tick: the ECU's inputs ("<q5i3iI") then its outputs
-_HASHED = struct.Struct("<q5i3iI" "i2B4BIBBB7i")
+# What the trace hash takes per tick, in this order: the ECU's inputs, then its outputs, each
+# packed little-endian with its struct code. The two "reserved" fields are always 0: they keep
+# the bytes (and so every recorded trace hash) of the layout in which they carried values.
+HASHED = (
+    ("tick", "q"), ("body_accel", "i"), ("wheel_accel", "i"), ("susp_defl", "i"),
+    ("motor_current", "i"), ("speed", "i"),                 # counts as received, -1 for none
+    ("req_kind", "i"), ("req_mode", "i"), ("req_counter", "i"), ("link_faults", "I"),
+    ("duty_q15", "i"), ("regen", "B"), ("enable", "B"), ("recommended_mode", "B"),
+    ("active_mode", "B"), ("grade", "B"), ("reason", "B"), ("faults", "I"), ("events", "B"),
+    ("override", "B"), ("reserved", "B"), ("force_cmd_n", "i"), ("road_est_um", "i"),
+    ("dtd_est_um", "i"), ("gq_est_log_c", "i"), ("ba_rms_mmps2", "i"), ("dtd_rms_um", "i"),
+    ("reserved", "i"))
+_HASHED = struct.Struct("<" + "".join(code for _, code in HASHED))
 # the ECU's per-tick trace columns (int64 rows of EcuNode.rows)
 ECU_TRACE = ("road_est_um", "dtd_est_um", "force_cmd_n", "grade", "active_mode",
              "recommended_mode", "faults", "enable")
@@ -271,7 +283,8 @@ class EcuNode:
                  fixed_point: bool = False, record: bool = False):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
-        self.state = ecu.init(params, build_tables(params) if fixed_point else None, record)
+        self.state = ecu.init(params, FixedPath(params, build_tables(params), record)
+                              if fixed_point else None)
         self.tx = Tx(codec, allowed=safety.TX_MESSAGES)
         self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"))
         self.unpack_sensors = codec.unpacker("PLANT_SENSORS", (
@@ -417,7 +430,7 @@ class EcuNode:
         self.unrecorded = None
         if None in counts:
             counts = tuple(-1 if c is None else c for c in counts)
-        self.sha.update(_HASHED.pack(
+        self.sha.update(_HASHED.pack(    # (in HASHED's order)
             k, *counts, -1 if speed is None else speed, kind, rmode, rid, link_faults,
             out.duty_q15, out.regen, out.enable, out.recommended_mode, out.active_mode,
             out.grade, out.reason, out.faults, out.events, out.override, 0, out.force_cmd_n,

@@ -34,12 +34,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import expm
 
-from firmware.jit import njit
-from hil.config import VehicleConfig
 from calib.model import mechanics, van_loan_integral
-
-N_AUG = 10
-VS, VT, ZS, ZT, CUR, ZF, VOLT, ZFDOT, FB, FW = range(N_AUG)
+from hil.config import VehicleConfig
+from hil.kernels import plant as kern
+from hil.kernels.plant import (ACC, A_MECH, A_STORED, A_SUPPLY, CUR, FB, FW, N_AUG, OBS, VOLT,  # noqa: F401
+                               VS, VT, ZF, ZFDOT, ZT)
 
 # Energy flows integrated exactly over each step (J): names of the quadratic forms.
 FLOWS = ("road_in", "nonlinear_work", "dc", "copper_loss", "damper_loss", "friction_loss",
@@ -56,14 +55,6 @@ def _sym(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Symmetric Q with zeta^T Q zeta = (a.zeta)(b.zeta)."""
     outer = np.outer(a, b)
     return 0.5 * (outer + outer.T)
-
-
-# The ledger's running sums, in the compiled step's accumulator array (QuarterCarPlant._acc).
-ACC = ("road_in_j", "nonlinear_work_j", "supply_drawn_j", "stored_j", "copper_loss_j",
-       "damper_loss_j", "friction_loss_j", "screw_loss_j", "flyback_loss_j", "electromagnetic_j",
-       "actuator_mech_j", "final_mech_j", "final_inductor_j")
-(A_ROAD, A_NL, A_SUPPLY, A_STORED, A_CU, A_DAMPER, A_FRIC, A_SCREW, A_FLYBACK, A_EM, A_ACT,
- A_MECH, A_IND) = range(len(ACC))
 
 
 @dataclass
@@ -261,34 +252,34 @@ class QuarterCarPlant:
         return float(self._acc[A_SUPPLY])
 
     def mech_energy_j(self) -> float:
-        return _mech_energy(self.x, self.zf, self._pp)
+        return kern.mech_energy(self.x, self.zf, self._pp)
 
     def _nonlinear_forces(self) -> tuple[float, float, bool, bool]:
-        return _nonlinear(self.x, self.zf, self._pp)
+        return kern.nonlinear(self.x, self.zf, self._pp)
 
     def _motoring(self) -> bool:
-        return _motoring(self.x, self._pp)
+        return kern.is_motoring(self.x, self._pp)
 
     def actuator_force_n(self) -> float:
         """Force of the actuator on the body (screw output minus its friction)."""
         if not self.has_actuator:
             return 0.0
-        return _actuator_force(self.x, self._pp)
+        return kern.actuator_force(self.x, self._pp)
 
     def accelerations(self) -> tuple[float, float]:
         """Body and wheel acceleration now (m/s^2), with the current road height."""
-        return _accelerations(self.x, self.zf, self._pp, self.has_actuator)
+        return kern.accelerations(self.x, self.zf, self._pp, self.has_actuator)
 
     def sensed(self) -> tuple[float, float, float, float]:
         """What the sensors see now, in one compiled call: body and wheel acceleration
         (``accelerations``), suspension deflection and motor current."""
-        return _sensed(self.x, self.zf, self._pp, self.has_actuator)
+        return kern.sensed(self.x, self.zf, self._pp, self.has_actuator)
 
     def observe_into(self, out: np.ndarray, k: int) -> None:
         """Write row ``k`` of ``out`` with the quantities ``OBS`` (in that order) in one
         compiled call: the same values as ``accelerations``, ``susp_defl_m``, ``tire_defl_m``,
         ``actuator_force_n``, ``stored_j`` and ``supply_drawn_j``."""
-        _observe_into(self.x, self.zf, self._pp, self.has_actuator, self._acc, out, k)
+        kern.observe_into(self.x, self.zf, self._pp, self.has_actuator, self._acc, out, k)
 
     @property
     def susp_defl_m(self) -> float:
@@ -315,7 +306,7 @@ class QuarterCarPlant:
             duty, enable = 0.0, False  # fail-safe: a non-finite command opens the bridge
         duty = min(1.0, max(-1.0, duty))
         enabled = bool(enable) and self.has_actuator
-        self.x, limited, contact, lifted = _advance(
+        self.x, limited, contact, lifted = kern.advance(
             self._phis, self._flows, self.x, self.zf, float(zf_next), duty, bool(regen), enabled,
             self.dt, self._pp, self._v, self._L, self.track_ledger, self._acc)
         if contact and not self.in_bump_contact:
@@ -338,7 +329,7 @@ class QuarterCarPlant:
         n = len(zf_next)
         out = np.empty((4, n))
         flags = np.empty((2, n), dtype=np.bool_)
-        self.x, self.zf, contacts, lifts = _run_open(
+        self.x, self.zf, contacts, lifts = kern.run_open(
             self._disc[(False, True)].phi, self.x, self.zf, np.asarray(zf_next, dtype=float),
             self.dt, self._pp, self.has_actuator, self.in_bump_contact, self.tire_lifted, out,
             flags)
@@ -348,189 +339,3 @@ class QuarterCarPlant:
             self.in_bump_contact, self.tire_lifted = bool(flags[0, -1]), bool(flags[1, -1])
         return {"ba": out[0], "sws": out[1], "dtd": out[2], "vrel": out[3],
                 "contact": flags[0], "lifted": flags[1]}
-
-
-# -- compiled kernels (firmware.jit: the same bits interpreted) ------------------------------
-P_MS, P_MT, P_KS, P_CS, P_KT, P_K, P_B, P_ETA, P_CLEAR, P_KB, P_LOAD, P_BUMP, P_LIFT, P_IMAX = \
-    range(14)
-
-
-@njit
-def _nonlinear(x, zf, pp):
-    """Bump-stop force on the body and the wheel, tyre lift-off force on the wheel."""
-    fb = fw = 0.0
-    contact = lifted = False
-    zs, zt = x[2], x[3]
-    if pp[P_BUMP] != 0.0:
-        d = zs - zt
-        over = abs(d) - pp[P_CLEAR]
-        if over > 0.0:
-            f = -pp[P_KB] * over * math.copysign(1.0, d)
-            fb += f
-            fw -= f
-            contact = True
-    if pp[P_LIFT] != 0.0:
-        total = pp[P_LOAD] + pp[P_KT] * (zf - zt)
-        if total < 0.0:
-            fw -= total
-            lifted = True
-    return fb, fw, contact, lifted
-
-
-@njit
-def _actuator_force(x, pp):
-    vrel = x[0] - x[1]
-    g = pp[P_ETA] if pp[P_K] * x[4] * vrel >= 0.0 else 1.0 / pp[P_ETA]
-    return g * pp[P_K] * x[4] - pp[P_B] * vrel
-
-
-@njit
-def _accelerations(x, zf, pp, has_actuator):
-    vs, vt, zs, zt = x[0], x[1], x[2], x[3]
-    fb, fw, _, _ = _nonlinear(x, zf, pp)
-    f_act = _actuator_force(x, pp) if has_actuator else 0.0
-    spring_damper = pp[P_KS] * (zs - zt) + pp[P_CS] * (vs - vt)
-    ba = (-spring_damper + f_act + fb) / pp[P_MS]
-    wa = (spring_damper - f_act - pp[P_KT] * (zt - zf) + fw) / pp[P_MT]
-    return ba, wa
-
-
-@njit
-def _sensed(x, zf, pp, has_actuator):
-    ba, wa = _accelerations(x, zf, pp, has_actuator)
-    return ba, wa, x[2] - x[3], x[4]
-
-
-# what observe_into writes, per row
-OBS = ("ba", "wa", "sws", "dtd", "force", "stored", "drawn")
-
-
-@njit
-def _observe_into(x, zf, pp, has_actuator, acc, out, k):
-    out[k, 0], out[k, 1] = _accelerations(x, zf, pp, has_actuator)
-    out[k, 2] = x[2] - x[3]
-    out[k, 3] = x[3] - zf
-    out[k, 4] = _actuator_force(x, pp) if has_actuator else 0.0
-    out[k, 5] = acc[A_STORED]
-    out[k, 6] = acc[A_SUPPLY]
-
-
-@njit
-def _step(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp):
-    """One exact step: zeta(t+dt) = phi zeta(t), with the bridge's current limit. Returns
-    (x after the step, zeta over the step, current limited, bump contact, tyre lifted)."""
-    fb, fw, contact, lifted = _nonlinear(x, zf, pp)
-    zeta = np.empty(N_AUG)
-    for i in range(5):
-        zeta[i] = x[i]
-    zeta[ZF] = zf
-    zeta[VOLT] = volt
-    zeta[ZFDOT] = (zf_next - zf) / dt
-    zeta[FB] = fb
-    zeta[FW] = fw
-    limited = False
-    if enabled:
-        # hardware current limit: the end-of-step current is affine in the voltage
-        base = 0.0
-        for j in range(N_AUG):
-            base += phi[CUR, j] * zeta[j]
-        base -= phi[CUR, VOLT] * volt
-        i_end = base + phi[CUR, VOLT] * volt
-        if abs(i_end) > pp[P_IMAX]:
-            lim = (math.copysign(pp[P_IMAX], i_end) - base) / phi[CUR, VOLT]
-            zeta[VOLT] = min(v_dc, max(-v_dc, lim))
-            limited = True
-    new = np.empty(5)
-    for i in range(5):
-        s = 0.0
-        for j in range(N_AUG):
-            s += phi[i, j] * zeta[j]
-        new[i] = s
-    return new, zeta, limited, contact, lifted
-
-
-@njit
-def _advance(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l, track, acc):
-    """``QuarterCarPlant.step`` after its input checks: the bridge, the discretisation of the
-    efficiency branch, the exact step and (``track``) the ledger's sums in ``acc``. Returns
-    (x after the step, current limited, bump contact, tyre lifted)."""
-    if not enabled and x[4] != 0.0:         # the bridge opens: the inductor's energy is dumped
-        acc[A_FLYBACK] += _inductor_energy(x[4], ind_l)
-        x = x.copy()
-        x[4] = 0.0
-    motoring = _motoring(x, pp) if enabled else True
-    e, m = int(enabled), int(motoring)
-    v_dc = v[1] if regen else v[0]
-    volt = duty * v_dc if enabled else 0.0
-    new, zeta, limited, contact, lifted = _step(phis[e, m], x, zf, zf_next, volt, v_dc,
-                                                enabled, dt, pp)
-    if track:
-        q = _quadratic_forms(flows[e, m], zeta)
-        acc[A_ROAD] += q[0]
-        acc[A_NL] += q[1]
-        if regen:
-            acc[A_STORED] -= q[2]
-        else:
-            acc[A_SUPPLY] += q[2]
-        acc[A_CU] += q[3]
-        acc[A_DAMPER] += q[4]
-        acc[A_FRIC] += q[5]
-        acc[A_EM] += q[6]
-        acc[A_ACT] += q[7]
-        acc[A_SCREW] += q[6] - q[7]
-        acc[A_MECH] = _mech_energy(new, zf_next, pp)
-        acc[A_IND] = _inductor_energy(new[4], ind_l)
-    return new, limited, contact, lifted
-
-
-@njit
-def _mech_energy(x, zf, pp):
-    """Kinetic energy of both masses plus the spring's and the tyre's."""
-    vs, vt, zs, zt = x[0], x[1], x[2], x[3]
-    return 0.5 * (pp[P_MS] * vs * vs + pp[P_MT] * vt * vt + pp[P_KS] * (zs - zt) ** 2
-                  + pp[P_KT] * (zt - zf) ** 2)
-
-
-@njit
-def _inductor_energy(i, ind_l):
-    return 0.5 * ind_l * i ** 2
-
-
-@njit
-def _motoring(x, pp):
-    """The motor drives the screw (K i v_rel >= 0): efficiency eta, else 1/eta."""
-    return pp[P_K] * x[4] * (x[0] - x[1]) >= 0.0
-
-
-@njit
-def _quadratic_forms(flows, zeta):
-    """flows @ outer(zeta, zeta).ravel(): the step's energy flows."""
-    n = zeta.shape[0]
-    out = np.empty(flows.shape[0])
-    for f in range(flows.shape[0]):
-        s = 0.0
-        for a in range(n):
-            for b in range(n):
-                s += flows[f, a * n + b] * (zeta[a] * zeta[b])
-        out[f] = s
-    return out
-
-
-@njit
-def _run_open(phi, x, zf, zf_next, dt, pp, has_actuator, contact, lifted, out, flags):
-    contacts = lifts = 0
-    for k in range(zf_next.shape[0]):
-        x, _, _, c, li = _step(phi, x, zf, zf_next[k], 0.0, 0.0, False, dt, pp)
-        if c and not contact:
-            contacts += 1
-        if li and not lifted:
-            lifts += 1
-        contact, lifted = c, li
-        zf = zf_next[k]
-        out[0, k], _ = _accelerations(x, zf, pp, has_actuator)
-        out[1, k] = x[2] - x[3]
-        out[2, k] = x[3] - zf
-        out[3, k] = x[0] - x[1]
-        flags[0, k] = c
-        flags[1, k] = li
-    return x, zf, contacts, lifts

@@ -267,7 +267,7 @@ def _tell_driver(t: float, faults: int, reason: int) -> None:
 
 
 def main(role: str, args) -> int:
-    from hil.cli import fail, route_or_exit, vehicle_or_exit
+    from hil.cli import design_or_exit, fail, route_or_exit, vehicle_or_exit
     from hil.codec import Codec
     from hil.config import ConfigError, load_driver_script
 
@@ -291,7 +291,8 @@ def main(role: str, args) -> int:
             from hil.sil import ecu_params
 
             p = ecu_params(cfg, args.mode, controller=args.controller,
-                           gains_file=Path(args.gains) if args.gains else None)
+                           gains_file=Path(args.gains) if args.gains else None,
+                           opts=design_or_exit(args.design))
             node = EcuNode(p, codec, lockstep=args.pace == "lockstep",
                            fixed_point=args.fixed_point)
         else:

@@ -12,8 +12,8 @@ from typing import NamedTuple
 import numpy as np
 
 from firmware.fixedpoint import round_half_away
-from firmware.jit import njit
 from hil.config import SENSOR_NAMES, SensorChannel, SensorParams
+from hil.kernels import sensors as kern
 
 NOISE_BLOCK = 256   # ticks of noise drawn at once (the same stream as one draw per tick)
 
@@ -70,33 +70,7 @@ class SensorSuite:
             self._next = 0
         z = self._noise[self._next]
         self._next += 1
-        return SensorReading(*_quantise5(float(body_accel), float(wheel_accel),
+        return SensorReading(*kern.quantise5(float(body_accel), float(wheel_accel),
                                          float(susp_defl), float(motor_current), float(speed),
                                          z, self._std, self.noise_gain, self._min, self._lsb,
                                          self._full))
-
-
-@njit
-def _quantise5(v0, v1, v2, v3, v4, z, std, gain, range_min, lsb, full):
-    """``_quantise`` of the five channels given as scalars (no array to build per call)."""
-    c = _quantise(np.array((v0, v1, v2, v3, v4)), z, std, gain, range_min, lsb, full)
-    return c[0], c[1], c[2], c[3], c[4]
-
-
-@njit
-def _quantise(values, z, std, gain, range_min, lsb, full):
-    """to_counts(channel, value + noise) for every channel (noise = z * std * gain)."""
-    out = np.empty(values.shape[0], dtype=np.int64)
-    for i in range(values.shape[0]):
-        v = values[i] + z[i] * std[i] * gain[i]
-        if math.isnan(v):
-            out[i] = 0
-            continue
-        raw = (v - range_min[i]) / lsb[i]
-        if raw <= 0.0:
-            out[i] = 0
-        elif raw >= full[i]:
-            out[i] = full[i]
-        else:
-            out[i] = int(math.floor(raw + 0.5))
-    return out

@@ -16,15 +16,13 @@ import numpy as np
 
 from firmware import params as fp
 from hil.codec import Codec
-from hil.config import MODE_BY_NAME, VehicleConfig
+from hil.config import CONTROLLERS, RUN_MODES as MODES, VehicleConfig
 from calib.ecu_params import build, with_controllers
 from calib.options import DesignOptions
 from hil.metrics import rms
 from hil.nodes import AppNode, EcuNode, PlantNode, run_in_process
 from hil.road import GRADES, Route
 
-MODES = {name: i for name, i in MODE_BY_NAME.items() if name != "energy"}   # CLI: "regen"
-CONTROLLERS = {name: i for i, name in enumerate(fp.CTRL_NAMES) if name != "none"}
 SETTLE_S = 3.0
 REACTION_S = 1.0
 

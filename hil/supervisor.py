@@ -22,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from firmware.params import GRADE_NAMES, MODE_NAMES
 from hil.bus import RT_PRIORITY, BusError, BusSpec, Hub, die_with_parent, resolve, rt_of
 from hil.buslog import BusLogFile
 from hil.codec import Codec
@@ -150,12 +151,12 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
     from rich.table import Table
 
     v = logger.view
-    modes = ("passive", "energy", "comfort", "safety", "comprehensive")
-    grades = "ABCD"
+    modes = MODE_NAMES
+    grades = GRADE_NAMES
 
     def mode_name(key):
         x = v.get(key)
-        return modes[int(x)] if x is not None and 0 <= int(x) < 5 else "-"
+        return modes[int(x)] if x is not None and 0 <= int(x) < len(modes) else "-"
 
     def grade_name(key):
         x = v.get(key)
@@ -183,11 +184,12 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
 
 
 def run(args) -> int:
-    from hil.cli import fail, route_or_exit, vehicle_or_exit
+    from hil.cli import design_or_exit, fail, route_or_exit, vehicle_or_exit
     from hil.config import ConfigError, load_driver_script
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route)
+    design_or_exit(args.design)          # (checked here; the ECU node reads it)
     if args.script:
         try:
             load_driver_script(args.script)
@@ -238,6 +240,8 @@ def run(args) -> int:
             ecu_argv += ["--controller", args.controller]
         if args.gains:
             ecu_argv += ["--gains", args.gains]
+        if args.design:
+            ecu_argv += ["--design", args.design]
         if args.fixed_point:
             ecu_argv += ["--fixed-point"]
         app_argv = [*common, "--mode", args.mode, "--quiet", "--rt-priority",

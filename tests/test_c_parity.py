@@ -14,6 +14,7 @@ import cantools
 import pytest
 
 from calib.fx_tables import build_tables
+from calib.options import DesignOptions
 from firmware import params as fp
 from firmware.fx import path as fx_path
 from firmware.fx import state as fx_state
@@ -22,7 +23,7 @@ from hil import sil
 from hil.codec import Codec, raw_range
 from hil.config import default_vehicle
 from hil.road import load_route
-from tools import tables
+from calib import c_tables as tables
 
 ROOT = Path(__file__).resolve().parents[1]
 C_DIR = ROOT / "c"
@@ -61,7 +62,7 @@ def test_tables_name_generator_and_inputs_and_carry_no_date():
     h = files[tables.HEADER]
     assert "do not edit" in h and "tools/tables.py" in h
     digest = re.search(r'ECU_TABLES_INPUTS_SHA256 "([0-9a-f]{64})"', h).group(1)
-    assert digest == tables.inputs_digest(default_vehicle(), None, tables.DesignOptions())
+    assert digest == tables.inputs_digest(default_vehicle(), None, DesignOptions())
     for text in files.values():
         assert not re.search(r"\b(19|20)\d\d-\d\d-\d\d\b|__DATE__|__TIME__", text)
 

@@ -116,3 +116,66 @@ def test_cli_bad_vehicle_exits_2_with_one_line(tmp_path, argv):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1
     assert "vehicle.unsprung_mass_kg" in lines[0] and str(path) in lines[0]
+
+
+# -- design options (calib.options) -------------------------------------------------------------
+
+def test_a_design_file_overrides_the_named_constants(tmp_path):
+    from calib.ecu_params import build
+    from calib.options import DesignOptions, load_options
+
+    path = write(tmp_path, "[design]\nsafety_dtd_limit = 0.5\nadc_rail_ticks = 5\n"
+                           "comprehensive_bound = [0.9, 0.95, 0.97]\nakf_adaptive = false\n")
+    opts = load_options(path)
+    assert opts.safety_dtd_limit == 0.5 and opts.adc_rail_ticks == 5 and not opts.akf_adaptive
+    assert opts.comprehensive_bound == (0.9, 0.95, 0.97)
+    assert opts.skyhook_c == DesignOptions().skyhook_c            # the rest: the defaults
+    p, p0 = build(default_vehicle(), opts), build(default_vehicle())
+    assert p.adc.rail_ticks == 5 and p0.adc.rail_ticks == 3
+    ratio = p.modes.safety_dtd_rms_limit / p0.modes.safety_dtd_rms_limit
+    assert ratio == pytest.approx(0.5 / 0.55, rel=1e-12)
+    assert not p.akf.adaptive and p0.akf.adaptive
+
+
+@pytest.mark.parametrize("text, words", [
+    ("[design]\nno_such_option = 1\n", ["design.no_such_option", "unknown"]),
+    ("[design]\nsafety_dtd_limit = -0.5\n", ["design.safety_dtd_limit", "positive"]),
+    ("[design]\nsafety_dtd_limit = nan\n", ["design.safety_dtd_limit", "finite"]),
+    ("[design]\nadc_rail_ticks = 2.5\n", ["design.adc_rail_ticks", "integer"]),
+    ("[design]\nakf_adaptive = 1\n", ["design.akf_adaptive", "true or false"]),
+    ("[design]\nbp_scale = [1, 2]\n", ["design.bp_scale", "3 positive numbers"]),
+    ("[other]\nx = 1\n", ["other", "only [design]"]),
+    ("[design\n", ["invalid TOML"]),
+])
+def test_a_bad_design_file_is_one_line_naming_the_key(tmp_path, text, words):
+    from calib.options import load_options
+
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_options(path)
+    msg = str(exc.value)
+    assert "\n" not in msg and str(path) in msg
+    for word in words:
+        assert word in msg
+
+
+def test_hil_sim_takes_a_design_file(tmp_path):
+    """--design with the defaults written out gives the same trace as without; a bad file is
+    one line and exit code 2."""
+    from calib.options import DesignOptions
+
+    defaults = DesignOptions()
+    good = write(tmp_path, "[design]\nsafety_dtd_limit = %r\nramp_s = %r\n"
+                 % (defaults.safety_dtd_limit, defaults.ramp_s))
+    base = [sys.executable, "-m", "hil", "sim", "--route", "city", "--duration", "2", "--json"]
+    runs = [subprocess.run(base + extra, capture_output=True, text=True, cwd=ROOT, timeout=300)
+            for extra in ([], ["--design", str(good)])]
+    assert all(r.returncode == 0 for r in runs), runs[1].stderr[-2000:]
+    import json
+
+    assert json.loads(runs[0].stdout)["trace_sha256"] == json.loads(runs[1].stdout)["trace_sha256"]
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[design]\nramp_s = 0\n")
+    proc = subprocess.run(base + ["--design", str(bad)], capture_output=True, text=True,
+                          cwd=ROOT, timeout=300)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "design.ramp_s" in proc.stderr

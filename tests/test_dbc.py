@@ -196,3 +196,39 @@ def test_positional_packer_and_unpacker_equal_encode_raw_and_decode():
         CODEC.packer("ACTUATOR_CMD", ("DUTY", "NOPE"))
     with pytest.raises(ValueError, match="NOPE"):
         CODEC.unpacker("ACTUATOR_CMD", ("NOPE",))
+
+
+def test_a_big_endian_signal_is_refused_at_load(tmp_path):
+    """The codec packs little-endian signals only (DESIGN.md section 3): a DBC with a
+    big-endian one is an error when it is loaded, never a silent slow path."""
+    text = DBC_PATH.read_text().replace("SG_ SPEED : 0|13@1+", "SG_ SPEED : 7|13@0+")
+    assert text != DBC_PATH.read_text()
+    bad = tmp_path / "big.dbc"
+    bad.write_text(text)
+    with pytest.raises(ValueError, match="VEHICLE_SPEED.SPEED is big-endian"):
+        Codec(bad)
+
+
+def test_the_firmwares_receive_and_transmit_tables_match_the_dbc():
+    """firmware.safety.RX_CHECKS and TX_MESSAGES against the DBC: every received message is
+    sent by another node and has the declared period, COUNTER and CHECKSUM; the ECU transmits
+    exactly the messages whose sender is ECU."""
+    codec = Codec()
+    db = codec.db
+    ecu_tx = {m.name for m in db.messages if "ECU" in m.senders}
+    assert set(safety.TX_MESSAGES) == ecu_tx
+    for check in safety.RX_CHECKS:
+        m = codec.message(check.message)
+        assert "ECU" not in m.senders, check.message
+        assert check.period_ms == codec.cycle_ms(check.message), check.message
+        spec = codec.specs[m.frame_id]
+        has = spec.counter_bit is not None and spec.checksum_byte is not None
+        assert check.counter_checksum == has, check.message
+    # every message the ECU node listens to (besides the simulation-only SIM_TICK) is checked
+    from hil.nodes import ID, EcuNode
+    from hil.sil import ecu_params
+    from hil.config import default_vehicle
+
+    node = EcuNode(ecu_params(default_vehicle(), "auto"), codec)
+    assert node.listen - {ID["SIM_TICK"]} == {ID[c.message] for c in safety.RX_CHECKS}
+    assert node.spec_speed.timeout_ticks == 30 and node.spec_speed.min_interval_ticks == 5

@@ -18,44 +18,51 @@ P = build(default_vehicle())
 # -- ADC ---------------------------------------------------------------------------------------
 
 def raw(**over):
+    """Mid-scale counts of every channel in adc.CHANNELS order, some overridden by name."""
     mid = {name: getattr(P.adc, name).full_scale // 2 for name in adc.CHANNELS}
     mid.update(over)
-    return mid
+    return tuple(mid[name] for name in adc.CHANNELS)
+
+
+def sample(st, counts):
+    """adc.sample with the SI values by channel name."""
+    values, faults = adc.sample(P.adc, st, counts)
+    return dict(zip(adc.CHANNELS, values)), faults
 
 
 def test_adc_conversion_and_plausibility():
     st = adc.AdcState()
-    v, faults = adc.sample(P.adc, st, raw())
+    v, faults = sample(st, raw())
     assert faults == 0
     ch = P.adc.body_accel
     assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)
     for bad in (-1, ch.full_scale + 1, float("nan"), None, 12.5, True):
         st = adc.AdcState()
-        adc.sample(P.adc, st, raw())
-        v, faults = adc.sample(P.adc, st, raw(body_accel=bad))
+        sample(st, raw())
+        v, faults = sample(st, raw(body_accel=bad))
         assert faults == adc.FAULT_BIT["body_accel"], bad
         assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)  # held
 
 
 def test_adc_tuple_path_refuses_a_wrong_number_of_channels():
-    """adc.sample_counts (the ECU's path) takes one count per channel, in CHANNELS order."""
+    """adc.sample takes one count per channel, in CHANNELS order."""
     with pytest.raises(ValueError):
-        adc.sample_counts(P.adc, adc.AdcState(), (1, 2, 3, 4))
+        adc.sample(P.adc, adc.AdcState(), (1, 2, 3, 4))
 
 
 def test_adc_stuck_at_rail_and_recovery_hysteresis():
     st = adc.AdcState()
     faults = 0
     for k in range(P.adc.rail_ticks):
-        _, faults = adc.sample(P.adc, st, raw(wheel_accel=P.adc.wheel_accel.full_scale))
+        _, faults = sample(st, raw(wheel_accel=P.adc.wheel_accel.full_scale))
         assert bool(faults) == (k + 1 >= P.adc.rail_ticks)
     for k in range(P.adc.recover_ticks):
-        _, faults = adc.sample(P.adc, st, raw())
+        _, faults = sample(st, raw())
         assert bool(faults) == (k + 1 < P.adc.recover_ticks)
     # speed at 0 counts is a car standing still, not a fault
     st = adc.AdcState()
     for _ in range(3 * P.adc.rail_ticks):
-        _, faults = adc.sample(P.adc, st, raw(speed=0))
+        _, faults = sample(st, raw(speed=0))
     assert faults == 0
 
 
@@ -145,9 +152,8 @@ def test_fault_forces_failsafe():
 
 def test_ecu_opens_the_bridge_on_a_sensor_fault_within_the_tick():
     st = ecu.init(P)
-    mid = raw()
-    inp = ecu.Inputs(0, mid["body_accel"], mid["wheel_accel"], mid["susp_defl"],
-                     mid["motor_current"], 2000, fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
+    ba, wa, defl, cur, _ = raw()
+    inp = ecu.Inputs(0, ba, wa, defl, cur, 2000, fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
     for k in range(400):
         st, out = ecu.step(st, inp._replace(tick=k))
     assert out.enable and out.active_mode == fp.MODE_SAFETY
@@ -246,8 +252,7 @@ def test_ecu_is_deterministic():
         for k in range(2000):
             r = raw(body_accel=int(2048 + rng.integers(-30, 30)), wheel_accel=int(2048 + rng.integers(-100, 100)),
                     susp_defl=int(2048 + rng.integers(-50, 50)), speed=2000)
-            st, o = ecu.step(st, ecu.Inputs(k, r["body_accel"], r["wheel_accel"], r["susp_defl"],
-                                            r["motor_current"], r["speed"], fp.REQ_CHOOSE, fp.MODE_COMFORT, 1))
+            st, o = ecu.step(st, ecu.Inputs(k, *r, fp.REQ_CHOOSE, fp.MODE_COMFORT, 1))
             outs.append(o)
         return outs
 

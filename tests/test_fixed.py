@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 
 from calib.fx_tables import build_tables
 from firmware import safety
+from firmware.path import FixedPath
 from firmware.control.fx.bppid import tanh_q
 from firmware.fx.akf import adc_signal
 from firmware.fx.tables import ADC_FRAC, F_NN
@@ -107,7 +108,7 @@ def test_a_diverged_covariance_is_a_fault_not_a_crash_in_the_fixed_path():
     from firmware import ecu
 
     p = sil.ecu_params(CFG, "comfort")
-    st = ecu.init(p, build_tables(p), record=True)
+    st = ecu.init(p, FixedPath(p, build_tables(p), record=True))
     inp = ecu.Inputs(tick=0, body_accel=2048, wheel_accel=2048, susp_defl=2048,
                      motor_current=2048, speed=2000)
     st, out = ecu.step(st, inp)

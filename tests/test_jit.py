@@ -1,5 +1,5 @@
-"""The compiled kernels (firmware.jit): the same bits as the interpreter, and right answers
-where they replaced numpy/LAPACK calls."""
+"""The compiled kernels (firmware.kernels, hil.kernels): the same bits as the interpreter, and
+right answers where they replaced numpy/LAPACK calls."""
 
 import json
 import os
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from firmware import akf
+from firmware.kernels import akf as akf_kernels
 from hil import sil
 from hil.config import default_vehicle
 from hil.plant import QuarterCarPlant
@@ -43,7 +44,7 @@ def test_jacobi_eigen_decomposition(n):
     for _ in range(50):
         A = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-6, 6)
         A = A + A.T
-        w, V = akf._jacobi_eigh(A)
+        w, V = akf_kernels.jacobi_eigh(A)
         assert np.allclose(np.sort(w), np.linalg.eigvalsh(A), rtol=1e-10,
                            atol=1e-12 * np.abs(A).max())
         assert np.allclose(V.T @ V, np.eye(n), atol=1e-12)
@@ -57,9 +58,9 @@ def test_symmetric_solve_against_lapack(n):
         L = rng.normal(size=(n, n))
         S = L @ L.T + n * np.eye(n)
         B = rng.normal(size=(n, 5))
-        assert np.allclose(akf._solve_sym(S, B), np.linalg.solve(S, B), rtol=1e-10, atol=1e-12)
+        assert np.allclose(akf_kernels.solve_sym(S, B), np.linalg.solve(S, B), rtol=1e-10, atol=1e-12)
     singular = np.zeros((n, n))
-    assert np.all(np.isnan(akf._solve_sym(singular, np.ones((n, 2)))))
+    assert np.all(np.isnan(akf_kernels.solve_sym(singular, np.ones((n, 2)))))
 
 
 def test_guard_clips_eigenvalues_for_any_size():
@@ -111,7 +112,7 @@ def test_passive_run_is_the_step_loop():
 
 
 def test_grade_interpolation_is_numpys():
-    from firmware.grade import interp
+    from firmware.kernels.grade import interp
 
     xp = np.array([0.0, 5.0, 10.0, 20.0, 40.0, 70.0])
     fp = np.array([3.0e-3, 2.5e-3, 1.1e-3, 7.0e-4, 2.0e-4, 1.3e-4])
@@ -125,9 +126,9 @@ def test_grade_interpolation_is_numpys():
 WARM_CHECK = """
 import json
 from numba.core.registry import CPUDispatcher
-from firmware import akf, grade
-from firmware.control import bppid
-from hil import nodes, plant, sensors, sil
+from firmware.kernels import akf, bppid, grade
+from hil import nodes, sil
+from hil.kernels import plant, sensors
 from hil.codec import Codec
 from hil.config import default_vehicle
 from hil.road import load_route
@@ -163,7 +164,7 @@ def test_warm_up_leaves_nothing_to_compile_for_the_run():
     assert res.returncode == 0, res.stderr[-2000:]
     got = json.loads(res.stdout)
     assert got["before"] == got["after"]
-    for kernel in ("firmware.akf._tick_into", "hil.plant._advance", "hil.plant._sensed",
-                   "hil.plant._observe_into", "hil.sensors._quantise5",
-                   "firmware.control.bppid._learn"):
+    for kernel in ("firmware.kernels.akf.tick_into", "hil.kernels.plant.advance",
+                   "hil.kernels.plant.sensed", "hil.kernels.plant.observe_into",
+                   "hil.kernels.sensors.quantise5", "firmware.kernels.bppid.learn"):
         assert got["before"][kernel] >= 1, kernel

@@ -43,7 +43,7 @@ def test_the_contracts_hold_on_the_tree(tree):
     ("hil/road.py", "from tools import analysis\n"),        # hil -> tools
     ("firmware/akf.py", "import scipy.linalg\n"),           # the firmware's purity
     ("calib/model.py", "import cantools\n"),                # calib reads no bus
-    ("hil/sensors.py", "import numba\n"),                   # numba only behind firmware.jit
+    ("hil/sensors.py", "import numba\n"),                   # numba only behind firmware.kernels
 ])
 def test_an_upward_or_forbidden_import_breaks_a_contract(tree, module, line):
     path = tree / module

@@ -2,7 +2,7 @@
  * Inputs SHA-256: c824fb456a87260c98209aff21e27ea79184e86c798c9d38ce6ed574fe784ccc
  * Vehicle: table3.toml
  * NAME_F32: float; NAME_Q31: int32 mantissa; NAME_Q31_FRAC: its fractional bits,
- * NAME = NAME_Q31 * 2^-NAME_Q31_FRAC. See tools/tables.py and README. */
+ * NAME = NAME_Q31 * 2^-NAME_Q31_FRAC. See calib/c_tables.py and docs/ecu.md. */
 
 #include "ecu_tables.h"
 

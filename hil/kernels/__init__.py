@@ -1,0 +1,1 @@
+"""The bench's compiled kernels (numba, through ``firmware.kernels.njit``): ``plant``, ``sensors``."""

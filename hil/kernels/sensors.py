@@ -1,0 +1,36 @@
+"""The sensors' compiled kernels (``hil.sensors`` is the model): noise and ADC quantisation of one
+sample of every channel, rounding half away from zero, saturating at the rails."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from firmware.kernels import njit
+
+
+@njit
+def quantise5(v0, v1, v2, v3, v4, z, std, gain, range_min, lsb, full):
+    """``_quantise`` of the five channels given as scalars (no array to build per call)."""
+    c = quantise(np.array((v0, v1, v2, v3, v4)), z, std, gain, range_min, lsb, full)
+    return c[0], c[1], c[2], c[3], c[4]
+
+
+@njit
+def quantise(values, z, std, gain, range_min, lsb, full):
+    """to_counts(channel, value + noise) for every channel (noise = z * std * gain)."""
+    out = np.empty(values.shape[0], dtype=np.int64)
+    for i in range(values.shape[0]):
+        v = values[i] + z[i] * std[i] * gain[i]
+        if math.isnan(v):
+            out[i] = 0
+            continue
+        raw = (v - range_min[i]) / lsb[i]
+        if raw <= 0.0:
+            out[i] = 0
+        elif raw >= full[i]:
+            out[i] = full[i]
+        else:
+            out[i] = int(math.floor(raw + 0.5))
+    return out
