@@ -87,7 +87,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     if not finite:
         faults |= safety.FAULT_NONFINITE_ESTIMATE
         path.reset_estimate(st)
-    vs, vt, _, zt, zf = st.akf.x.tolist()   # (Python floats: faster arithmetic than numpy's)
+    _, vt, _, zt, zf = st.akf.x.tolist()    # (Python floats: faster arithmetic than numpy's)
     # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
     dtd_est = zt - zf
     g_est = grade.step(P.grade, st.grade, vt, dtd_est, ba, speed, P.dt_s)

@@ -14,9 +14,9 @@ import math
 import numpy as np
 
 from firmware import actuator, akf, control, safety
+from firmware.control import fx as fx_control
 from firmware.fixedpoint import to_fixed, to_float
 from firmware.fx import akf as fx_akf
-from firmware.fx import path as fx_path
 from firmware.fx import state as fx_state
 from firmware.fx.tables import F_FORCE, MEAS_FRAC, STATE_FRAC, FxTables
 from firmware.params import CTRL_NAMES, MODE_PASSIVE, EcuParams
@@ -113,7 +113,7 @@ class FixedPath:
                 i_meas: float, force_meas: float) -> tuple[int, bool, float]:
         want = st.params.modes.controllers[mode]
         passive = mode == MODE_PASSIVE
-        duty, active, force_q = fx_path.control(self.tables, self.fx, want, passive, fault, regen)
+        duty, active, force_q = fx_control.control(self.tables, self.fx, want, passive, fault, regen)
         if self.log is not None:
             counts, k_q, r_q, reset = self._in
             self.log.append((fx_state.TickIn(counts, k_q, r_q, want, passive, fault, regen,
@@ -122,4 +122,4 @@ class FixedPath:
 
     def warm_up(self, st) -> None:
         for ctrl in range(len(CTRL_NAMES)):
-            fx_path.force_of(self.tables, self.fx, ctrl)
+            fx_control.force_of(self.tables, self.fx, ctrl)

@@ -16,7 +16,7 @@ import pytest
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
 from firmware import params as fp
-from firmware.fx import path as fx_path
+from firmware.control import fx as fx_control
 from firmware.fx import state as fx_state
 from firmware.fx.tables import Fx
 from hil import sil
@@ -134,7 +134,7 @@ def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(re
     T = build_tables(params)
     s = fx_state.init(T, params.modes.controllers[params.modes.initial_mode])
     for k, (inp, out) in enumerate(rec):
-        assert fx_path.tick(T, s, inp) == out, k
+        assert fx_control.tick(T, s, inp) == out, k
     # C
     res = subprocess.run([str(replay_exe)], input=trace_text(rec), capture_output=True, text=True)
     assert res.returncode == 0, res.stderr

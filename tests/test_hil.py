@@ -1,6 +1,7 @@
 """The bench as processes on the CAN hub (marker ``hil``): SIL = HIL, the log, the scenarios,
 and what happens when a node dies or the user presses Ctrl-C."""
 
+import hashlib
 import json
 import os
 import signal
@@ -13,17 +14,14 @@ import numpy as np
 import pytest
 
 from firmware import params as fp
-from hil import sil
-from hil.buslog import BusLogFile, read_log
-from hil.config import default_vehicle
-from hil.nodes import ID, LockstepClock
-from hil.road import load_route
+from hil.buslog import read_log
+from hil.nodes import ID
+from tests import golden
 from tests.procutil import children as _children
 from tests.procutil import cmdline as _cmdline
 
 ROOT = Path(__file__).resolve().parents[1]
 ROUTES = Path(__file__).resolve().parent / "routes"
-CFG = default_vehicle()
 pytestmark = pytest.mark.hil
 
 
@@ -36,29 +34,23 @@ def without_bench(report: dict) -> dict:
     return {k: v for k, v in report.items() if k != "bench"}
 
 
-def sil_with_log(route, mode, seed, log_path: Path, **kw) -> dict:
-    log = BusLogFile(log_path)
-    clock = LockstepClock(CFG.sim.plant_dt_s)
-    try:
-        rep, _ = sil.run(CFG, route, mode, seed,
-                         on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)), **kw)
-    finally:
-        log.close()
-    return json.loads(json.dumps(rep))   # as the JSON round trip gives it
-
-
 def test_full_road_section_lockstep_equals_sil(tmp_path):
     """The acceptance run: full_road_section, auto, seed 1, lockstep over the hub."""
     proc = hil_run(tmp_path / "hil", "--route", "full_road_section", "--mode", "auto",
                    "--seed", "1", "--pace", "lockstep")
     assert proc.returncode == 0, proc.stderr[-2000:]
     hil_rep = json.loads(proc.stdout)
-    sil_rep = sil_with_log(load_route("full_road_section"), "auto", 1, tmp_path / "sil.log")
-    # SIL = HIL: same ECU trace hash, same metrics, and the same log, byte for byte
-    assert hil_rep["trace_sha256"] == sil_rep["trace_sha256"]
-    assert without_bench(hil_rep) == without_bench(sil_rep)
+    # SIL = HIL: the same ECU trace hash, the same report and the same log, byte for byte, as
+    # the SIL's golden trace of this scenario pins them (tests/test_golden.py runs the SIL)
+    sil_gold = golden.load()["full_road_section_auto"]
+    assert sil_gold["command"].startswith("python -m hil sim --route full_road_section "
+                                          "--mode auto --seed 1 --out")
+    assert hil_rep["trace_sha256"] == sil_gold["trace_sha256"]
+    got = {k: v for k, v in without_bench(hil_rep).items()
+           if k not in golden.IGNORED_REPORT_KEYS}
+    assert golden.diff(sil_gold["report"], got) == []
     log = tmp_path / "hil" / "bus.log"
-    assert log.read_bytes() == (tmp_path / "sil.log").read_bytes()
+    assert hashlib.sha256(log.read_bytes()).hexdigest() == sil_gold["buslog_sha256"]
     # every frame each node reports sending is in the log, and nothing else
     frames = read_log(log)
     sent = {name: n for node in hil_rep["frames_sent"].values() for name, n in node.items()}

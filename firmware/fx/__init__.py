@@ -12,7 +12,7 @@ every tick. Python and C, function for function:
 | ``control.fx.pid.pid_step`` | ``pid_step`` |
 | ``control.fx.lqr.dot_state``, ``force`` | ``dot_state``, ``lqr_force`` |
 | ``control.fx.skyhook.force``, ``control.fx.regen.force`` | ``skyhook_force``, ``regen_force`` |
-| ``fx.path.force_of``, ``control``, ``tick`` | ``force_of``, ``fx_control``, ``fx_tick`` |
+| ``control.fx.force_of``, ``control``, ``tick`` | ``force_of``, ``fx_control``, ``fx_tick`` |
 | ``fx.actuator.current_reference``, ``step``, ``reset`` | ``current_reference``, ``actuator_step``, ``actuator_reset`` |
 
 One ECU tick on this path (``firmware.ecu.init(params, fixed_point=True)``, the path object
@@ -25,7 +25,7 @@ One ECU tick on this path (``firmware.ecu.init(params, fixed_point=True)``, the 
      (``fx.akf.quantize_gain``), as a background task hands its result to the control interrupt
   3. ``fx.akf.correct``  x += K (residual - r)                                     (integer)
   4. road grade, road-holding check and mode logic in float, from x               (supervisor)
-  5. ``fx.path.control`` controller of the selected mode, crossfade, force limit, the gate,
+  5. ``control.fx.control`` controller of the selected mode, crossfade, force limit, the gate,
                          force -> current -> voltage -> duty, regen bounds        (integer)
 
 Formats and constants: ``fx.tables``; the tables are built offline by ``calib.fx_tables``.
