@@ -17,11 +17,21 @@ def test_every_scenario_is_pinned():
 @pytest.mark.golden
 @pytest.mark.parametrize("name", [s.name for s in golden.SCENARIOS])
 def test_golden_trace(name):
-    got = golden.run(golden.BY_NAME[name])
+    trace = []
+    got = golden.run(golden.BY_NAME[name], trace)
     want = WANT[name]
     assert got["command"] == want["command"]
     problems = golden.diff(want, got)
     assert not problems, f"{name} ({want['command']}):\n" + "\n".join(problems)
+    if name == "full_road_section_auto":
+        # the firmware's acceptance on this run (tests/test_sil_acceptance.py has the other
+        # seeds and routes): grades right, one switch per grade change at most, bumpless
+        from tests.test_sil_acceptance import assert_bumpless
+
+        rep = got["report"]
+        assert rep["grade_accuracy"] >= 0.95
+        assert rep["mode_switches"] <= rep["grade_changes"] + 1
+        assert_bumpless(trace[0])
 
 
 def test_the_comparison_sees_a_changed_metric():

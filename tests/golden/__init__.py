@@ -60,8 +60,9 @@ SCENARIOS = (
 BY_NAME = {s.name: s for s in SCENARIOS}
 
 
-def run(s: Scenario) -> dict:
-    """Run one scenario in process as ``hil sim --out`` does; the pinned values."""
+def run(s: Scenario, trace: Optional[list] = None) -> dict:
+    """Run one scenario in process as ``hil sim --out`` does; the pinned values. ``trace`` (a
+    list) receives the run's per-tick trace (``hil.sil.SilTrace``)."""
     from hil import sil
     from hil.buslog import BusLogFile
     from hil.cli import _clean
@@ -75,12 +76,14 @@ def run(s: Scenario) -> dict:
         log = BusLogFile(Path(tmp) / "bus.log")
         clock = LockstepClock(cfg.sim.plant_dt_s)
         try:
-            report, _ = sil.run(cfg, route, s.mode, s.seed, fixed_point=s.fixed_point,
-                                duration_s=s.duration_s,
-                                on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)))
+            report, tr = sil.run(cfg, route, s.mode, s.seed, fixed_point=s.fixed_point,
+                                 duration_s=s.duration_s,
+                                 on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)))
         finally:
             log.close()
         buslog_sha = hashlib.sha256(log.path.read_bytes()).hexdigest()
+    if trace is not None:
+        trace.append(tr)
     metrics = json.loads(json.dumps(_clean(report)))
     for key in IGNORED_REPORT_KEYS:
         metrics.pop(key, None)
