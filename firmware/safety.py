@@ -130,7 +130,6 @@ RX_CHECKS = (
     RxCheck("VEHICLE_SPEED", 10, 3, True, 0.5),
     RxCheck("DRIVER_REQUEST", 100, 0, True, 0.0),
 )
-RX_BY_NAME = {c.message: c for c in RX_CHECKS}
 TX_MESSAGES = ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND")
 
 

@@ -33,10 +33,10 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
-from firmware import ecu, safety
-from firmware.path import FixedPath
-from firmware import params as fp
 from calib.fx_tables import build_tables
+from firmware import ecu, safety
+from firmware import params as fp
+from firmware.path import FixedPath
 from hil.codec import Codec
 from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
@@ -57,8 +57,8 @@ _DUTY, _FALLBACK = len(OBS), len(OBS) + 1   # PlantNode.obs columns after plant.
 TRACE = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored", "drawn",
          "duty", "fallback")                   # the plant's trace columns
 # What the trace hash takes per tick, in this order: the ECU's inputs, then its outputs, each
-# packed little-endian with its struct code. The two "reserved" fields are always 0: they keep
-# the bytes (and so every recorded trace hash) of the layout in which they carried values.
+# packed little-endian with its struct code. The two "reserved" fields are always 0; they stay
+# so that every recorded trace hash (tests/golden, earlier reports) stays valid.
 HASHED = (
     ("tick", "q"), ("body_accel", "i"), ("wheel_accel", "i"), ("susp_defl", "i"),
     ("motor_current", "i"), ("speed", "i"),                 # counts as received, -1 for none
