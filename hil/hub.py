@@ -17,6 +17,16 @@ receivers' sockets at once (nonblocking; a slow client's backlog is kept, up to
 ``MAX_BACKLOG`` bytes, after which that client is dropped so it cannot stall the others).
 It listens on 127.0.0.1 only. Periodic transmission in the hub (``periodic_start``) is not
 supported and answered with an error event.
+
+Every client message is validated before it is used: a WebSocket message larger than
+``MAX_MESSAGE`` bytes (refused from its length header, before it is buffered), a binary frame
+shorter than its header, JSON that is not an event object, a frame whose ID is outside the
+standard (11-bit) or extended (29-bit) range, whose DLC or data length is not a CAN (FD) one,
+whose data is not a list of bytes or whose flags are not booleans: each disconnects that client,
+with the reason in the hub's log (stderr) and an ``error`` event to the client; the hub and the
+other clients go on. A client may send at most ``RATE_LIMIT_FPS`` frames per second (a token
+bucket with one second of burst); frames beyond that are dropped and counted, and the count is
+logged when the client leaves.
 """
 
 from __future__ import annotations
@@ -37,6 +47,11 @@ LOOPBACK = "127.0.0.1"
 CHANNEL_INFO = "hil.hub broadcast relay"
 MAX_BACKLOG = 16 * 1024 * 1024      # bytes queued for one client before it is dropped
 MAX_HEADER = 16 * 1024              # an HTTP request head larger than this is refused
+MAX_MESSAGE = 4096                  # a larger WebSocket message disconnects its client
+RATE_LIMIT_FPS = 100_000            # frames per second one client may send (plant and ECU
+#                                     send 1,210 per simulated second, 3,700/s in lockstep)
+MAX_DATA = {False: 8, True: 64}     # data bytes of a classic / an FD frame
+FD_LENGTHS = frozenset((*range(9), 12, 16, 20, 24, 32, 48, 64))
 
 _WS_GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
 _TEXT, _BINARY, _CLOSE, _PING, _PONG = 0x1, 0x2, 0x8, 0x9, 0xA
@@ -96,19 +111,56 @@ class Frame:
         return ws_frame(_TEXT, json.dumps({"type": "message", "payload": payload}).encode())
 
 
-def frame_from_json(p: dict) -> Frame:
-    flags = ((IS_EXTENDED_ID if p.get("is_extended_id", True) else 0)
-             | (IS_REMOTE_FRAME if p.get("is_remote_frame") else 0)
-             | (IS_ERROR_FRAME if p.get("is_error_frame") else 0)
-             | (IS_FD if p.get("is_fd") else 0)
-             | (IS_BRS if p.get("bitrate_switch") else 0)
-             | (IS_ESI if p.get("error_state_indicator") else 0))
-    data = bytes(p.get("data") or b"")
-    return Frame(int(p["arbitration_id"]), int(p.get("dlc", len(data))), flags, data)
+class BadMessage(ValueError):
+    """A client message the hub will not relay (its client is disconnected)."""
+
+
+_JSON_FLAGS = (("is_extended_id", IS_EXTENDED_ID), ("is_remote_frame", IS_REMOTE_FRAME),
+               ("is_error_frame", IS_ERROR_FRAME), ("is_fd", IS_FD),
+               ("bitrate_switch", IS_BRS), ("error_state_indicator", IS_ESI))
+
+
+def checked_frame(arb_id, dlc, flags: int, data: bytes) -> Frame:
+    """A frame whose fields a CAN (FD) controller could carry, else BadMessage."""
+    extended, fd = bool(flags & IS_EXTENDED_ID), bool(flags & IS_FD)
+    top = 0x1FFFFFFF if extended else 0x7FF
+    if type(arb_id) is not int or not 0 <= arb_id <= top:
+        raise BadMessage(f"arbitration_id {arb_id!r} is not a {'29' if extended else '11'}-bit ID")
+    if len(data) > MAX_DATA[fd]:
+        raise BadMessage(f"{len(data)} data bytes (at most {MAX_DATA[fd]})")
+    if type(dlc) is not int or not 0 <= dlc <= MAX_DATA[fd] or (fd and dlc not in FD_LENGTHS):
+        raise BadMessage(f"dlc {dlc!r} is not a CAN{' FD' if fd else ''} length")
+    if not flags & IS_REMOTE_FRAME and dlc != len(data):
+        raise BadMessage(f"dlc {dlc} but {len(data)} data bytes")
+    return Frame(arb_id, dlc, flags, data)
+
+
+def frame_from_json(p) -> Frame:
+    """A ``message`` event's payload as a frame, validated (BadMessage)."""
+    if not isinstance(p, dict):
+        raise BadMessage("a message payload must be an object")
+    flags = 0
+    for key, bit in _JSON_FLAGS:
+        v = p.get(key, key == "is_extended_id")
+        if not isinstance(v, bool):
+            raise BadMessage(f"{key} must be true or false, got {v!r}")
+        flags |= bit if v else 0
+    raw = p.get("data", [])
+    if raw is None:
+        raw = []
+    if not isinstance(raw, list) or len(raw) > MAX_DATA[True]:
+        raise BadMessage("data must be a list of at most 64 bytes")
+    if not all(type(b) is int and 0 <= b <= 255 for b in raw):
+        raise BadMessage("data must hold integers 0..255")
+    data = bytes(raw)
+    if "arbitration_id" not in p:
+        raise BadMessage("a message needs an arbitration_id")
+    return checked_frame(p["arbitration_id"], p.get("dlc", len(data)), flags, data)
 
 
 class Client:
-    __slots__ = ("sock", "inbuf", "out", "state", "binary", "filters", "name", "closing")
+    __slots__ = ("sock", "inbuf", "out", "state", "binary", "filters", "name", "closing",
+                 "tokens", "t_tokens", "rate_dropped")
 
     def __init__(self, sock: socket.socket, name: str):
         self.sock = sock
@@ -119,6 +171,20 @@ class Client:
         self.filters: Optional[list[tuple[int, int, Optional[bool]]]] = None
         self.name = name
         self.closing = False
+        self.tokens = float("inf")            # the rate limit's bucket (frames; full)
+        self.t_tokens = time.monotonic()
+        self.rate_dropped = 0                  # frames dropped for the rate limit
+
+    def within_rate(self, rate: float) -> bool:
+        """Take one frame from the bucket (refilled at ``rate`` per second, one second deep)."""
+        now = time.monotonic()
+        self.tokens = min(rate, self.tokens + (now - self.t_tokens) * rate)
+        self.t_tokens = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        self.rate_dropped += 1
+        return False
 
     def accepts(self, f: Frame) -> bool:
         """python-can's acceptance filter rule (BusABC._matches_filters)."""
@@ -144,7 +210,7 @@ def parse_filters(raw) -> Optional[list[tuple[int, int, Optional[bool]]]]:
 
 class HubServer:
     def __init__(self, port: int, host: str = LOOPBACK, log=None,
-                 max_backlog: int = MAX_BACKLOG):
+                 max_backlog: int = MAX_BACKLOG, rate_limit_fps: float = RATE_LIMIT_FPS):
         if host != LOOPBACK:
             raise ValueError("the hub listens on 127.0.0.1 only")
         self.sel = selectors.DefaultSelector()
@@ -157,6 +223,8 @@ class HubServer:
         self.clients: list[Client] = []
         self.frames_relayed = 0
         self.dropped_clients = 0
+        self.rejected_clients = 0           # disconnected for a bad message
+        self.rate_limit_fps = float(rate_limit_fps)
         self.running = True
         self.max_backlog = max_backlog
         self.log = log or (lambda msg: None)
@@ -196,8 +264,19 @@ class HubServer:
         self.clients.append(c)
         self.sel.register(sock, selectors.EVENT_READ, c)
 
+    def _reject(self, c: Client, reason: str) -> None:
+        """A bad message: tell the client, log the reason, disconnect it."""
+        self.log(f"disconnecting {c.name}: {reason}")
+        self.rejected_clients += 1
+        if c.state != "http":
+            self._event(c, "error", f"disconnected: {reason}")
+        self._drop(c)
+
     def _drop(self, c: Client) -> None:
         if c in self.clients:
+            if c.rate_dropped:
+                self.log(f"{c.name}: {c.rate_dropped} frames over the rate limit "
+                         f"({self.rate_limit_fps:g}/s) dropped")
             self.clients.remove(c)
             try:
                 self.sel.unregister(c.sock)
@@ -308,6 +387,9 @@ class HubServer:
                     return
                 n = int.from_bytes(buf[2:10], "big")
                 pos = 10
+            if n > MAX_MESSAGE:
+                self._reject(c, f"a {n}-byte message (at most {MAX_MESSAGE})")
+                return
             masked = b2 & 0x80
             need = pos + (4 if masked else 0) + n
             if len(buf) < need:
@@ -321,16 +403,28 @@ class HubServer:
 
     def _message(self, c: Client, opcode: int, payload: bytes) -> None:
         if opcode == _BINARY:
-            if c.state == "bus" and len(payload) >= 15 and payload[0] == _BIN_TYPE:
+            if c.state != "bus":
+                self._reject(c, "a binary message before the bus request")
+            elif len(payload) < 1 + _BIN_MSG.size or payload[0] != _BIN_TYPE:
+                self._reject(c, f"a malformed binary message ({len(payload)} bytes)")
+            else:
                 _ts, arb_id, dlc, flags = _BIN_MSG.unpack_from(payload, 1)
-                self.relay(c, Frame(arb_id, dlc, flags, payload[15:]))
+                try:
+                    frame = checked_frame(arb_id, dlc, flags, payload[1 + _BIN_MSG.size:])
+                except BadMessage as exc:
+                    self._reject(c, f"bad frame: {exc}")
+                    return
+                if c.within_rate(self.rate_limit_fps):
+                    self.relay(c, frame)
             return
         if opcode == _TEXT:
             try:
                 event = json.loads(payload)
-                kind = event["type"]
-            except (ValueError, TypeError, KeyError):
-                self._event(c, "error", "not a JSON event with a 'type'")
+                kind = event["type"] if isinstance(event, dict) else None
+            except (ValueError, KeyError, RecursionError):
+                kind = None
+            if not isinstance(kind, str):
+                self._reject(c, "not a JSON event with a 'type'")
                 return
             if c.state == "request":
                 if kind != "bus_request":
@@ -339,18 +433,19 @@ class HubServer:
                 try:
                     cfg = event.get("payload", {}).get("config", {}) or {}
                     c.filters = parse_filters(cfg.get("can_filters"))
-                except (AttributeError, KeyError, TypeError, ValueError) as exc:
-                    self._event(c, "error", f"bad bus_request: {exc}")
+                except (AttributeError, KeyError, TypeError, ValueError, OverflowError) as exc:
+                    self._reject(c, f"bad bus_request: {exc}")
                     return
                 c.state = "bus"
                 self._event(c, "bus_response", {"channel_info": CHANNEL_INFO})
             elif kind == "message":
                 try:
-                    frame = frame_from_json(event["payload"])
-                except (KeyError, TypeError, ValueError) as exc:
-                    self._event(c, "error", f"bad message: {exc}")
+                    frame = frame_from_json(event.get("payload"))
+                except BadMessage as exc:
+                    self._reject(c, f"bad message: {exc}")
                     return
-                self.relay(c, frame)
+                if c.within_rate(self.rate_limit_fps):
+                    self.relay(c, frame)
             else:
                 self._event(c, "error", f"{kind!r} is not supported by this hub")
             return

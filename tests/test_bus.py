@@ -2,6 +2,8 @@
 
 import can
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from hil.bus import BusError, BusSpec, Hub, kernel_has_vcan, resolve
 
@@ -216,3 +218,184 @@ def test_rt_priority_never_raises_and_says_what_it_got():
     assert rt_of(0, "plant") == 0
     assert rt_of(50, "plant") > rt_of(50, "hub") > rt_of(50, "ecu") > rt_of(50, "app") > 0
     assert set(RT_OFFSET) == {"plant", "hub", "ecu", "app"}
+
+
+# -- the hub against malformed clients --------------------------------------------------------
+
+def _ws_message(opcode: int, payload: bytes) -> bytes:
+    """A masked client-to-server WebSocket message (RFC 6455)."""
+    import os
+    import struct
+
+    head = bytes([0x80 | opcode])
+    n = len(payload)
+    if n < 126:
+        head += bytes([0x80 | n])
+    elif n < 1 << 16:
+        head += bytes([0x80 | 126]) + struct.pack(">H", n)
+    else:
+        head += bytes([0x80 | 127]) + struct.pack(">Q", n)
+    mask = os.urandom(4)
+    return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+class _LiveHub:
+    """A HubServer in a thread of this process, with two well-behaved python-can clients."""
+
+    def __init__(self):
+        import threading
+
+        from hil.bus import free_port
+        from hil.hub import HubServer
+
+        self.log: list[str] = []
+        self.server = HubServer(free_port(), log=self.log.append)
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+        url = f"ws://127.0.0.1:{self.server.port}/"
+        self.a, self.b = BusSpec("remote", url).open(), BusSpec("remote", url).open()
+
+    def raw(self, messages: list[bytes], bus_request: bool = True) -> bytes:
+        """Connect, upgrade, (request the bus,) send ``messages``; what came back."""
+        import base64
+        import json
+        import os
+        import socket
+
+        with socket.create_connection(("127.0.0.1", self.server.port), timeout=2.0) as s:
+            key = base64.b64encode(os.urandom(16)).decode()
+            s.sendall((f"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade"
+                       f"\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Protocol: can.json.v1"
+                       f"\r\n\r\n").encode())
+            if bus_request:
+                s.sendall(_ws_message(1, json.dumps({"type": "bus_request",
+                                                     "payload": {"config": {}}}).encode()))
+            for m in messages:
+                try:
+                    s.sendall(m)
+                except OSError:          # the hub hung up on us: what it should do
+                    break
+            s.settimeout(0.3)
+            got = b""
+            try:
+                while chunk := s.recv(65536):
+                    got += chunk
+            except OSError:
+                pass
+            return got
+
+    def relays(self) -> bool:
+        """The good clients still talk through the hub."""
+        import can
+
+        self.a.send(can.Message(arbitration_id=0x42, data=b"alive", is_extended_id=False))
+        m = self.b.recv(2.0)
+        return m is not None and bytes(m.data) == b"alive"
+
+    def close(self):
+        self.a.shutdown()
+        self.b.shutdown()
+        self.server.running = False
+        self.thread.join(5.0)
+        self.server.close()
+
+
+@pytest.fixture
+def live_hub():
+    hub = _LiveHub()
+    yield hub
+    hub.close()
+
+
+@pytest.mark.parametrize("payload, reason", [
+    ({"arbitration_id": 0x80, "dlc": 300, "data": [1]}, "dlc 300"),
+    ({"arbitration_id": -1, "dlc": 1, "data": [1]}, "arbitration_id -1"),
+    ({"arbitration_id": 0x800, "is_extended_id": False, "data": []}, "11-bit"),
+    ({"arbitration_id": 0x80, "data": 300000000}, "data must be a list"),
+    ({"arbitration_id": 0x80, "data": [1, 2, 256]}, "0..255"),
+    ({"arbitration_id": 0x80, "data": list(range(9))}, "9 data bytes"),
+    ({"arbitration_id": 0x80, "dlc": 4, "data": [1]}, "dlc 4 but 1"),
+    ({"arbitration_id": 0x80, "is_fd": "yes", "data": []}, "is_fd must be true or false"),
+    ({"arbitration_id": "0x80", "data": []}, "arbitration_id '0x80'"),
+    ({"data": []}, "needs an arbitration_id"),
+    ([1, 2, 3], "payload must be an object"),
+])
+def test_a_malformed_json_frame_disconnects_its_client_and_nothing_else(live_hub, payload,
+                                                                        reason):
+    import json
+
+    got = live_hub.raw([_ws_message(1, json.dumps({"type": "message",
+                                                   "payload": payload}).encode())])
+    assert b"disconnected" in got
+    assert any(reason in line for line in live_hub.log), live_hub.log
+    assert live_hub.server.rejected_clients == 1 and live_hub.relays()
+
+
+def test_oversized_and_binary_garbage_disconnect_before_anything_is_buffered(live_hub):
+    import struct
+
+    huge_header = bytes([0x81, 0x80 | 127]) + struct.pack(">Q", 300_000_000) + b"\0" * 4
+    live_hub.raw([huge_header + b"x" * 100])
+    assert any("300000000-byte message" in line for line in live_hub.log)
+    live_hub.raw([_ws_message(2, b"\x01\x02")])                      # short binary frame
+    bad_dlc = b"\x01" + struct.pack(">dIBB", 0.0, 0x80, 200, 0) + b"\0" * 3
+    live_hub.raw([_ws_message(2, bad_dlc)])
+    live_hub.raw([_ws_message(1, b"[[[[[[[[" * 500)])                  # not an event
+    assert live_hub.server.rejected_clients == 4
+    assert any("dlc 200" in line for line in live_hub.log)
+    assert live_hub.relays()
+
+
+def test_the_rate_limit_drops_the_excess_and_says_so():
+    import can
+
+    import threading
+    import time
+
+    from hil.bus import free_port
+    from hil.hub import HubServer
+
+    log = []
+    server = HubServer(free_port(), log=log.append, rate_limit_fps=50)
+    t = threading.Thread(target=server.serve_forever, daemon=True)
+    t.start()
+    url = f"ws://127.0.0.1:{server.port}/"
+    a, b = BusSpec("remote", url).open(), BusSpec("remote", url).open()
+    try:
+        t0 = time.monotonic()
+        for k in range(200):                     # far faster than 50 per second
+            a.send(can.Message(arbitration_id=0x10, data=[k % 256], is_extended_id=False))
+        sent_s = time.monotonic() - t0
+        got = 0
+        while b.recv(0.5) is not None:
+            got += 1
+        # one second's bucket, then what refilled while the frames came in
+        assert 50 <= got <= 50 + 50 * sent_s + 2, (got, sent_s)
+    finally:
+        a.shutdown()
+        b.shutdown()
+        server.running = False
+        t.join(5.0)
+        server.close()
+    assert any("frames over the rate limit" in line for line in log), log
+
+
+@settings(max_examples=120, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.lists(st.one_of(
+    st.binary(max_size=200),                                          # raw bytes
+    st.builds(lambda b: _ws_message(1, b), st.binary(max_size=300)),  # text frames of junk
+    st.builds(lambda b: _ws_message(2, b), st.binary(max_size=40)),   # binary frames of junk
+    st.builds(lambda j: _ws_message(1, j.encode()), st.recursive(
+        st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=10),
+        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
+            st.sampled_from(["type", "payload", "arbitration_id", "dlc", "data", "is_fd",
+                             "config", "can_filters", "x"]), inner, max_size=4),
+        max_leaves=12).map(__import__("json").dumps)),
+), max_size=4), bus_request=st.booleans())
+def test_random_bytes_and_json_never_stop_the_hub(live_hub, data, bus_request):
+    """Hypothesis throws random bytes, WebSocket frames and JSON at a live hub: the hub never
+    dies and the well-behaved clients always still talk."""
+    live_hub.raw(data, bus_request)
+    assert live_hub.thread.is_alive()
+    assert live_hub.relays()
