@@ -7,11 +7,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from calib.errors import ConfigError
+from calib.errors import ConfigError, read_toml
 from firmware.params import MODE_PASSIVE
 
 NOMINAL_SPEED_MPS = 20.0      # speed of the designs' linear models (the paper's v0)
@@ -72,12 +71,7 @@ class DesignOptions:
 def load_options(path: str | Path, base: DesignOptions | None = None) -> DesignOptions:
     """``base`` (default: the defaults) with the ``[design]`` table of a TOML file applied."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_bytes().decode("utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read design file: {exc.strerror or exc}") from None
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    data = read_toml(path, "design")
     unknown = set(data) - {"design"}
     if unknown:
         raise ConfigError(f"{path}: unknown table or key '{sorted(unknown)[0]}' (only [design])")

@@ -9,6 +9,7 @@ import math
 import sys
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
+from calib.options import load_options
 from hil.config import ConfigError, VehicleConfig, load_vehicle
 from hil.road import GRADES, Route, load_route
 
@@ -35,8 +36,6 @@ def design_or_exit(path: str | None):
     """The design options of ``--design FILE`` (None without it); a bad file exits 2."""
     if path is None:
         return None
-    from calib.options import load_options
-
     try:
         return load_options(path)
     except ConfigError as exc:

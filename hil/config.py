@@ -12,33 +12,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from calib.errors import ConfigError
+from calib.errors import ConfigError, read_toml
 from firmware.params import CTRL_NAMES, MODE_ENERGY, MODE_NAMES
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_VEHICLE_FILE = PACKAGE_DIR / "vehicles" / "table3.toml"
 
 GRAVITY_MPS2 = 9.80665
-
-
-def read_toml(path: str | Path, what: str) -> dict[str, Any]:
-    """Read a TOML file, turning every failure into a one-line :class:`ConfigError`."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read {what} file: {exc.strerror or exc}") from None
-    try:
-        return tomllib.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: {what} file is not UTF-8 text") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
 
 
 def _number(path: Path, key: str, value: Any, *, positive: bool, allow_zero: bool = False) -> float:

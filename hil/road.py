@@ -27,7 +27,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy.signal import lfilter
 
-from hil.config import PACKAGE_DIR, ConfigError, read_toml
+from calib.errors import ConfigError, read_toml
+from hil.config import PACKAGE_DIR
 
 from calib.iso8608 import (CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, GRADES, N0_PER_M,  # noqa: F401
                            convention_factor, gq_of, grade_of, road_noise_gain)
