@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hil import config
+from hil import config, verdict
 from hil.cli import (add_design_argument, add_json_argument, add_vehicle_argument,
                      positive_float, route_or_exit, seed_arg, vehicle_or_exit)
 
@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     _fixed_argument(p)
     add_vehicle_argument(p)
     add_json_argument(p)
+    verdict.add_arguments(p)
     _driver_arguments(p)
     _node_parsers(sub)
     args = parser.parse_args(argv)
@@ -141,6 +142,7 @@ def _node_parsers(sub) -> None:
                        "record and log into DIR (default: out/run)")
     p.set_defaults(out="out/run", rt_priority=None)
     add_json_argument(p)
+    verdict.add_arguments(p, realtime=True)
 
     p = sub.add_parser("plant", help="the plant simulator node (owns simulated time; start it "
                                      "after the ECU and the app)")
@@ -182,6 +184,7 @@ def _node_parsers(sub) -> None:
     p.add_argument("--out", metavar="DIR", default="out/faults",
                    help="bus.log, node records and faults.json (default: out/faults)")
     add_json_argument(p)
+    verdict.add_arguments(p)
 
 
 def _inject_argument(p) -> None:
@@ -226,10 +229,13 @@ def _sim(args) -> int:
     if args.out:
         report["bench"] = {"harness": "sil", "frames_logged": log.count}
         write_outputs(Path(args.out), report, trace)
+    if args.junit:
+        verdict.write_junit(args.junit, f"hil sim {route.name} {args.mode}",
+                            [verdict.Check(**c) for c in report["checks"]])
     finish(report, None, "report.json", args.json, render_sil)
     if args.out and not args.json:
         print(f"report: {Path(args.out) / 'report.md'} (and report.json, bus.log, figures)")
-    return 0
+    return verdict.exit_code(report)
 
 
 if __name__ == "__main__":

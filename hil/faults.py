@@ -458,9 +458,35 @@ def campaign(out: Path, *, in_process: bool = False, seed: int = 1,
 
 
 def passed(results: list[Result]) -> bool:
-    return all(r.detected and not r.crashed
-               and (not r.safety_relevant or (r.reaction_ticks or 0) <= MAX_REACTION_TICKS)
-               and r.recovered is not False for r in results)
+    return all(_holds(r) for r in results)
+
+
+def _holds(r: Result) -> bool:
+    return (r.detected and not r.crashed
+            and (not r.safety_relevant or (r.reaction_ticks or 0) <= MAX_REACTION_TICKS)
+            and r.recovered is not False)
+
+
+def checks(results: list[Result]) -> list:
+    """The verdict's checks: one per fault. Value: the reaction in ticks (or what went wrong);
+    limit: what the fault must meet."""
+    from hil.verdict import Check
+
+    out = []
+    for r in results:
+        limit = "detected" + (f", fail-safe within {MAX_REACTION_TICKS} ticks"
+                              if r.safety_relevant else "")
+        limit += ", recovered" if r.recovered is not None else ""
+        if r.crashed:
+            value = "crashed"
+        elif not r.detected:
+            value = "missed"
+        elif r.recovered is False:
+            value = f"reaction {r.reaction_ticks} ticks, not recovered"
+        else:
+            value = f"reaction {r.reaction_ticks} ticks"
+        out.append(Check(f"fault.{r.fault}", value, limit, _holds(r)))
+    return out
 
 
 def _table(results: list[Result]) -> None:
@@ -508,10 +534,14 @@ def main(args) -> int:
     results = campaign(Path(args.out), in_process=args.in_process, seed=args.seed, names=names,
                        interface=getattr(args, "interface", None),
                        channel=getattr(args, "channel", None))
-    rows = [asdict(r) for r in results]
-    (Path(args.out) / "faults.json").write_text(json.dumps(rows, indent=1) + "\n")
+    from hil import verdict
+
+    doc = verdict.attach({"results": [asdict(r) for r in results]}, checks(results))
+    (Path(args.out) / "faults.json").write_text(json.dumps(doc, indent=1) + "\n")
+    if getattr(args, "junit", None):
+        verdict.write_junit(args.junit, "hil faults", checks(results), time.monotonic() - t0)
     if args.json:
-        print(json.dumps(rows, indent=1))
+        print(json.dumps(doc, indent=1))
     else:
         _table(results)
         print(f"{sum(r.detected for r in results)}/{len(results)} detected, "
@@ -519,4 +549,5 @@ def main(args) -> int:
               f"{max((r.reaction_ticks or 0) for r in results if r.safety_relevant)} ticks "
               f"(limit {MAX_REACTION_TICKS}); {time.monotonic() - t0:.1f} s; "
               f"{Path(args.out) / 'faults.json'}")
-    return 0 if passed(results) else 1
+        verdict.render(doc)
+    return verdict.exit_code(doc)

@@ -38,6 +38,15 @@ def markdown(report: dict, figures: list[str]) -> str:
     bench = report.get("bench", {"harness": "sil"})
     lines = [f"# {bench.get('harness', 'sil').upper()} run: route `{report['route']}`, "
              f"mode `{report['mode']}`, seed {report['seed']}", ""]
+    if report.get("incomplete"):
+        lines += [f"**INCOMPLETE**: {report['incomplete']}", ""]
+    if "verdict" in report:
+        checks = report["checks"]
+        bad = [c for c in checks if not c["ok"]]
+        lines += [f"**Verdict: {report['verdict'].upper()}** "
+                  f"({len(checks) - len(bad)}/{len(checks)} checks hold)", ""]
+        lines += [f"- FAIL `{c['name']}` = {c['value']} (limit {c['limit']})" for c in bad]
+        lines += [""] if bad else []
     lines += [f"- vehicle: `{report['vehicle']}`",
               f"- duration: {report['duration_s']:.1f} s simulated"
               + (f", {bench['wall_s']:.1f} s wall (RTF {bench['rtf']:.2f}), pace "

@@ -49,6 +49,7 @@ Frame = tuple[int, bytes]
 # message IDs (from the DBC, resolved once)
 _DB = Codec()
 ID = {m.name: m.frame_id for m in _DB.db.messages}
+NAME_OF = {v: k for k, v in ID.items()}
 OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
 UNKNOWN_GRADE_ON_BUS = 7
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
@@ -598,19 +599,27 @@ class LockstepClock:
         return us / 1e6
 
 
+def message_name(fid: int) -> str:
+    """The DBC name of a frame ID (``0x123`` for an ID the DBC does not define)."""
+    return NAME_OF.get(fid) or f"0x{fid:X}"
+
+
 def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
                    on_frame: Optional[Callable[[int, bytes], None]] = None,
-                   progress: Optional[Callable[[int, int], None]] = None) -> None:
+                   progress: Optional[Callable[[int, int], None]] = None) -> dict[str, int]:
     """The lockstep protocol with the three nodes in this process: a FIFO stands in for the
-    bus (every frame goes to every other node, in the order sent)."""
+    bus (every frame goes to every other node, in the order sent). Returns the frames that
+    crossed the FIFO, per message name."""
     nodes = (plant, ecu_node, app)
     queue: deque = deque()
     routes: dict = {}     # (sender, frame ID) -> the nodes that do not ignore it
+    seen: Counter = Counter()
 
     def send(sender, frames):
         queue.extend((sender, f) for f in frames)
         while queue:
             src, (fid, data) = queue.popleft()
+            seen[fid] += 1
             if on_frame is not None:
                 on_frame(fid, data)
             dests = routes.get((src, fid))
@@ -633,6 +642,7 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
         plant.step()
         if progress is not None and (plant.k % report_every == 0 or plant.done):
             progress(plant.k, plant.n)
+    return {message_name(fid): n for fid, n in seen.items()}
 
 
 def warm_up(node, ticks: int = 30) -> None:

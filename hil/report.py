@@ -113,3 +113,7 @@ def render_sil(report: dict) -> None:
                       f"{s['grade_accuracy']:.2f}", f"{s['harvested_w']:.2f}",
                       f"{s['consumed_j'] / t:.1f}", f"{s['road_estimate_rmse_m'] * 1e3:.1f}")
     Console().print(table)
+    if "verdict" in report:
+        from hil.verdict import render
+
+        render(report)

@@ -15,6 +15,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from firmware import params as fp
+from hil import verdict
 from hil.codec import Codec
 from hil.config import CONTROLLERS, RUN_MODES as MODES, VehicleConfig
 from calib.ecu_params import build, with_controllers
@@ -85,13 +86,22 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     ecu_node = EcuNode(p, codec, lockstep=True, fixed_point=fixed_point,
                        record=fx_record is not None)
     app = app_node(codec, mode, p.dt_s, policy, script)
-    run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
+    bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
     if fx_record is not None:
         fx_record.extend(ecu_node.state.path.log)
     trace = merge_traces(plant.dt, plant.trace(), ecu_node.trace())
     report = build_report(cfg, route, mode, controller, seed, trace, plant.summary(),
                           ecu_node.summary(), app.summary())
+    verdict.attach(report, verdict.run_checks(
+        report, expected_ticks=plant.n, dt_s=plant.dt, ticks={"PLANT": plant.k,
+                                                               "ECU": ecu_node.k},
+        bus_frames=bus, fault_ticks=fault_ticks(trace)))
     return report, trace
+
+
+def fault_ticks(trace: SilTrace) -> int:
+    """ECU ticks with a bit of the fault word set."""
+    return int(np.count_nonzero(trace.arrays["faults"]))
 
 
 def merge_traces(dt: float, plant: dict, ecu_cols: dict) -> SilTrace:

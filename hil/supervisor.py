@@ -26,7 +26,8 @@ from firmware.params import GRADE_NAMES, MODE_NAMES
 from hil.bus import RT_PRIORITY, BusError, BusSpec, Hub, die_with_parent, resolve, rt_of
 from hil.buslog import BusLogFile
 from hil.codec import Codec
-from hil.nodes import ID, LockstepClock
+from hil import verdict
+from hil.nodes import ID, LockstepClock, message_name
 
 EXIT_NODE = 1
 EXIT_INTERRUPTED = 130
@@ -317,11 +318,37 @@ def run(args) -> int:
             "lag_max_us", "overruns", "cmd_rtt_p50_us", "cmd_rtt_p99_us", "cmd_rtt_max_us",
             "sched")
             if k in summaries["plant"]}
+    verdict.attach(report, run_checks(report, summaries, logger.log.by_id, n, dt, args,
+                                      sil.fault_ticks(trace)))
     write_outputs(out, report, trace)
+    if getattr(args, "junit", None):
+        verdict.write_junit(args.junit, f"hil run {route.name} {args.mode} {args.pace}",
+                            [verdict.Check(**c) for c in report["checks"]], wall)
     finish(report, None, "report.json", args.json, render_sil)
     if not args.json:
         print(f"report: {out / 'report.md'} (and report.json, bus.log, figures)")
-    return 0
+    return verdict.exit_code(report)
+
+
+def run_checks(report: dict, summaries: dict, logged_by_id: dict, n: int, dt: float,
+               args, fault_ticks: int) -> list:
+    """The verdict's checks of a bench run (``hil.verdict.run_checks``) from the nodes'
+    summaries and the logger's count of frames per ID."""
+    plant, ecu = summaries["plant"], summaries["ecu"]
+    realtime = args.pace == "realtime"
+    timer_ticks = ecu["frame_faults"].get("PLANT_SENSORS:missing", 0)
+    ticks = {"PLANT": plant["ticks"]}
+    if not realtime:     # realtime: the ECU's timer ticks too when a frame is late
+        ticks["ECU"] = ecu["ticks"]
+    sensors_sent = plant["frames_sent"].get("PLANT_SENSORS", 0)
+    lost = max(0, sensors_sent - (ecu["ticks"] - timer_ticks))
+    return verdict.run_checks(
+        report, expected_ticks=n, dt_s=dt, ticks=ticks,
+        bus_frames={message_name(fid): c for fid, c in logged_by_id.items()},
+        pace=args.pace, injected=bool(getattr(args, "inject", None)),
+        lost_sensor_frames=lost, missed_deadlines=plant.get("missed_deadlines", 0),
+        fault_ticks=fault_ticks,
+        limits=verdict.limits_of(args))
 
 
 def _watch(nodes: dict, logger: Logger, n: int, dt: float, route, args) -> None:

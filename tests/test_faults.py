@@ -35,7 +35,10 @@ def campaign_dir(tmp_path_factory):
     proc = subprocess.run([sys.executable, "-m", "hil", "faults", "--json", "--out", str(out)],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return out, json.loads(proc.stdout)
+    doc = json.loads(proc.stdout)
+    assert doc["verdict"] == "pass" and len(doc["checks"]) == len(doc["results"])
+    assert all(c["ok"] for c in doc["checks"])
+    return out, doc["results"]
 
 
 @CAMPAIGN
@@ -106,8 +109,10 @@ def test_cli_subset_and_bad_names(tmp_path):
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "2/2 detected, 0 crashed" in proc.stdout
-    rows = json.loads((tmp_path / "faults.json").read_text())
-    assert [r["fault"] for r in rows] == ["invalid_mode", "gains_nan"]
+    doc = json.loads((tmp_path / "faults.json").read_text())
+    assert [r["fault"] for r in doc["results"]] == ["invalid_mode", "gains_nan"]
+    assert [c["name"] for c in doc["checks"]] == ["fault.invalid_mode", "fault.gains_nan"]
+    assert doc["verdict"] == "pass" and "verdict: PASS (2/2 checks hold)" in proc.stdout
     proc = subprocess.run([sys.executable, "-m", "hil", "faults", "--only", "nope"], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "unknown fault(s) nope" in proc.stderr
@@ -134,7 +139,11 @@ def test_realtime_ecu_detects_a_silent_plant_and_tells_the_driver(tmp_path):
     time.sleep(0.3)
     os.kill(plant, signal.SIGCONT)
     out, err = sup.communicate(timeout=120)
-    assert sup.returncode == 0, err[-2000:]
+    # the run went on, but its verdict is fail: 0.3 s of fail-safe is no clean drive
+    assert sup.returncode == 1, err[-2000:]
+    rep = json.loads(out)
+    failed = {c["name"] for c in rep["checks"] if not c["ok"]}
+    assert rep["verdict"] == "fail" and "failsafe_ratio" in failed
     ecu_sum = json.loads((tmp_path / "ecu.json").read_text())
     assert ecu_sum["frame_faults"].get("PLANT_SENSORS:missing", 0) >= 100
     codec = Codec()
