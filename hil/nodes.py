@@ -159,14 +159,16 @@ class PlantNode:
         self.p_truth = period_ticks(codec, "SIM_TRUTH", dt)
         self.p_energy = period_ticks(codec, "ENERGY_STATUS", dt)
         self.cmd_rx = safety.RxState()
+        self.cmd_rx_wire = safety.RxState()     # (fault campaign: every command on the wire)
         # the frames on_frame does nothing with (a bus harness may skip them)
         self.ignore = frozenset(ID.values()) - {ID["ACTUATOR_CMD"]}
         self.k = 0
         self.cmd = (0, False, False)        # duty Q15, regen, enable
         self.cmd_tick = -1                  # tick of the last valid command
-        self.cmd_fresh = False              # a command arrived since the last step
+        self.cmd_fresh = False              # this tick's valid command arrived (lockstep)
         self.cmd_seq = -1                   # SENSOR_SEQ of the last valid command
-        self.bad_cmd_frames = 0
+        self.bad_cmd_frames = 0             # invalid ACTUATOR_CMD frames (not applied)
+        self.stale_cmd_frames = 0           # valid, but not answering the tick's sensor frame
         self.missed_cmds = 0                # steps without a fresh command
         self.fallback_ticks = 0             # steps in the passive fallback
         # per tick: the active corner (plant.OBS, written by one compiled call), then the
@@ -203,27 +205,46 @@ class PlantNode:
         return out
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
+        """Only a valid ACTUATOR_CMD (DLC, CHECKSUM, COUNTER, range) is applied, and only one
+        that answers this tick's sensor frame (SENSOR_SEQ) ends the tick in lockstep; the rest
+        are counted (``bad_cmd_frames``, ``stale_cmd_frames``) and never stepped on."""
         if fid == ID["ACTUATOR_CMD"]:
-            self.cmd_fresh = True           # (lockstep: the ECU's tick is over either way)
-            if self.inject is not None and self.inject.drop_rx(self, fid):
-                return []                   # lost in the plant's receiver
+            on_wire = False
+            if self.inject is not None:
+                # the fault campaign loses commands in the plant's receiver after the ECU sent
+                # them: the ECU's tick is over all the same (lockstep), as a receiver that
+                # sees every frame on the wire judges it (the plant's own receiver rejects the
+                # first command after a loss: its COUNTER jumped)
+                w, _ = self.unpack_cmd(data, self.cmd_rx_wire, self.k)
+                on_wire = w is not None and self._answers(w[3])
+                if self.inject.drop_rx(self, fid):
+                    self.cmd_fresh |= on_wire
+                    return []
             v, _ = self.unpack_cmd(data, self.cmd_rx, self.k)
-            if v is not None:
-                duty, regen, enable, self.cmd_seq = v
-                self.cmd = (duty, bool(regen), bool(enable))
-                self.cmd_tick = self.k
-            else:
+            if v is None:
                 self.bad_cmd_frames += 1
+                self.cmd_fresh |= on_wire
+                return []
+            duty, regen, enable, self.cmd_seq = v
+            self.cmd = (duty, bool(regen), bool(enable))
+            self.cmd_tick = self.k
+            if self._answers(self.cmd_seq):
+                self.cmd_fresh = True
+            else:
+                self.stale_cmd_frames += 1
         return []
 
+    def _answers(self, seq: int) -> bool:
+        return seq == (self.tx.counters.get("PLANT_SENSORS", 0) - 1) & 0x3
+
     def ready(self) -> bool:
-        """Lockstep: the ECU's command for this tick is in."""
+        """Lockstep: the ECU's valid command answering this tick's sensor frame is in."""
         return self.cmd_fresh
 
     def answered(self) -> bool:
         """The last valid command answers this tick's sensor frame (its SENSOR_SEQ is the
         COUNTER, modulo 4, of the PLANT_SENSORS frame last sent)."""
-        return self.cmd_seq == (self.tx.counters.get("PLANT_SENSORS", 0) - 1) & 0x3
+        return self._answers(self.cmd_seq)
 
     def step(self) -> None:
         k, a, t = self.k, self.active, self.twin
@@ -251,6 +272,7 @@ class PlantNode:
     def summary(self) -> dict:
         out = {"node": "plant", "ticks": self.k, "frames_sent": dict(self.tx.sent),
                "energy": self.active.ledger.as_dict(), "bad_cmd_frames": self.bad_cmd_frames,
+               "stale_cmd_frames": self.stale_cmd_frames,
                "missed_cmds": self.missed_cmds, "fallback_ticks": self.fallback_ticks}
         if self.inject is not None:
             out["injected"] = self.inject.applied

@@ -108,14 +108,15 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
             _send(bus, node.emit())
             deadline = time.monotonic() + PARTNER_TIMEOUT_S
             while not node.ready() and not stop.flag:
+                # (checked on every frame: a flood of invalid commands must not hold it off)
+                if time.monotonic() > deadline:
+                    raise PartnerSilent(f"no valid ACTUATOR_CMD for tick {node.k} within "
+                                        f"{PARTNER_TIMEOUT_S:g} s ({node.bad_cmd_frames} "
+                                        f"invalid); are the ECU and the app running on this "
+                                        f"bus?")
                 msg = bus.recv(0.5)
-                if msg is None:
-                    if time.monotonic() > deadline:
-                        raise PartnerSilent(f"no ACTUATOR_CMD for tick {node.k} within "
-                                            f"{PARTNER_TIMEOUT_S:g} s; are the ECU and the "
-                                            f"app running on this bus?")
-                    continue
-                node.on_frame(msg.arbitration_id, bytes(msg.data))
+                if msg is not None:
+                    node.on_frame(msg.arbitration_id, bytes(msg.data))
             if stop.flag:
                 break
             node.step()

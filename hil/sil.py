@@ -124,6 +124,8 @@ def build_report(cfg, route, mode, controller, seed, trace: SilTrace, plant: dic
     report["fx_gain_saturations"] = ecu.get("fx_gain_saturations", 0)
     report["plant_fallback_ticks"] = plant["fallback_ticks"]
     report["plant_missed_cmds"] = plant["missed_cmds"]
+    report["plant_bad_cmd_frames"] = plant["bad_cmd_frames"]
+    report["plant_stale_cmd_frames"] = plant["stale_cmd_frames"]
     return report
 
 

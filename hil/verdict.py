@@ -10,7 +10,8 @@ The checks of a drive (``hil sim``, ``hil run``; :func:`run_checks`):
   ``hil sim``) are the frames the nodes sent, message by message;
 * ``app.answers``: the app answered every MODE_RECOMMEND (lockstep);
 * without injected faults, in lockstep: no frame fault, no tick with a fault bit (fail-safe),
-  no tick of the plant's passive fallback, no tick stepped without a command; in realtime
+  no tick of the plant's passive fallback, no tick stepped without a command, no invalid or
+  stale command at the plant (in realtime: no invalid one); in realtime
   the same under limits (:class:`Limits`, options ``--max-missed-ratio``/``--max-lost-ratio``);
 * ``mode_switches`` in auto mode: at most the route's grade changes + 1.
 """
@@ -105,9 +106,13 @@ def run_checks(report: dict, *, expected_ticks: int, dt_s: float, ticks: dict[st
             out += [check("frame_faults", frame_faults, "==", 0),
                     check("failsafe_ticks", fault_ticks, "==", 0),
                     check("plant_fallback_ticks", report["plant_fallback_ticks"], "==", 0),
-                    check("plant_missed_cmds", report["plant_missed_cmds"], "==", 0)]
+                    check("plant_missed_cmds", report["plant_missed_cmds"], "==", 0),
+                    check("plant_bad_cmd_frames", report["plant_bad_cmd_frames"], "==", 0),
+                    check("plant_stale_cmd_frames", report["plant_stale_cmd_frames"], "==",
+                          0)]
         else:
             n = max(1, expected_ticks)
+            out.append(check("plant_bad_cmd_frames", report["plant_bad_cmd_frames"], "==", 0))
             out += [check("missed_deadline_ratio", missed_deadlines / n, "<=",
                           limits.max_missed_ratio),
                     check("lost_frame_ratio", lost_sensor_frames / n, "<=",

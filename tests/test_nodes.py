@@ -163,3 +163,36 @@ def test_every_command_names_the_sensor_frame_it_answers():
     ecu_node.timer_tick()               # ... and it never arrives: the ECU's timer ticks
     plant.on_frame(*command())
     assert plant.answered()             # a timer tick answers the expected frame
+
+
+def test_lockstep_steps_only_on_a_valid_command_for_this_tick():
+    """A flood of ACTUATOR_CMD-ID garbage, a bad CHECKSUM, a repeated COUNTER and a valid
+    command answering another sensor frame never end the plant's tick; each is counted; the
+    invalid ones are never applied; the ECU's real command ends the tick."""
+    plant = PlantNode(CFG, constant_route("B", 20.0, 1.0), 1, CODEC)
+    ecu_node = EcuNode(sil.ecu_params(CFG, "comfort"), CODEC, lockstep=False)
+    for fid, data in plant.emit():
+        ecu_node.on_frame(fid, data)
+    cmd_id, cmd = next(f for f in ecu_node.tick() if f[0] == ID["ACTUATOR_CMD"])
+    spec = CODEC.specs[cmd_id]
+    for junk in (bytes(8), b"\xff" * 8, bytes(3), bytes(range(8))):
+        plant.on_frame(cmd_id, junk)
+    forged = bytearray(cmd)
+    forged[spec.checksum_byte] ^= 0x01
+    plant.on_frame(cmd_id, bytes(forged))
+    assert not plant.ready() and plant.cmd_tick == -1
+    assert plant.bad_cmd_frames == 5
+    # a valid command for another sensor frame (SENSOR_SEQ + 1): applied-as-latest in
+    # realtime, but it does not answer this tick
+    seq = plant.tx.counters["PLANT_SENSORS"] & 3
+    other = CODEC.encode_raw("ACTUATOR_CMD", {"DUTY": 30000, "REGEN": 0, "ENABLE": 1,
+                                              "SENSOR_SEQ": seq}, 0)
+    plant.on_frame(cmd_id, other)
+    assert not plant.ready() and plant.stale_cmd_frames == 1
+    plant.on_frame(cmd_id, cmd)          # COUNTER 0 again: a repeat, invalid
+    assert not plant.ready() and plant.bad_cmd_frames == 6
+    # a fresh plant gets the real command: valid and answering, the tick ends
+    plant = PlantNode(CFG, constant_route("B", 20.0, 1.0), 1, CODEC)
+    plant.emit()
+    plant.on_frame(cmd_id, cmd)
+    assert plant.ready() and plant.bad_cmd_frames == 0 and plant.cmd_tick == 0
