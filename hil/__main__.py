@@ -143,6 +143,9 @@ def _node_parsers(sub) -> None:
     p.set_defaults(out="out/run", rt_priority=None)
     add_json_argument(p)
     verdict.add_arguments(p, realtime=True)
+    p.add_argument("--stall-s", type=positive_float, default=None, metavar="S",
+                   help="stop the run when a node (or the hub) makes no progress for S wall "
+                        "seconds (default 20)")
 
     p = sub.add_parser("plant", help="the plant simulator node (owns simulated time; start it "
                                      "after the ECU and the app)")
@@ -195,7 +198,7 @@ def _sim(args) -> int:
     from pathlib import Path
 
     from hil import sil
-    from hil.cli import design_or_exit, fail, progress_bar
+    from hil.cli import design_or_exit, fail, lock_out, progress_bar
     from hil.buslog import BusLogFile
     from hil.config import ConfigError, load_driver_script
     from hil.figures import write_outputs
@@ -208,6 +211,8 @@ def _sim(args) -> int:
     if args.driver == "script" and not args.script:
         fail("sim: --driver script needs --script FILE")
     log = clock = None
+    if args.out:
+        lock_out(args.out)
     try:
         script = load_driver_script(args.script) if args.script else None
         if args.out:

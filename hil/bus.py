@@ -16,6 +16,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -248,6 +249,7 @@ class Hub:
         if self.proc is None or self.proc.poll() is not None:
             return
         self.proc.terminate()
+        _continue(self.proc.pid)        # a stopped process handles SIGTERM only once resumed
         try:
             self.proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
@@ -259,6 +261,52 @@ class Hub:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def _continue(pid: int) -> None:
+    try:
+        os.kill(pid, signal.SIGCONT)
+    except OSError:
+        pass
+
+
+SHUTDOWN_S = 2.0
+
+
+def close_bus(bus: Optional[can.BusABC], timeout_s: float = SHUTDOWN_S) -> bool:
+    """``bus.shutdown()`` in bounded time: can_remote's client waits for the hub's close
+    handshake (``recv`` in a loop), forever when the hub is stopped or gone silent; after
+    ``timeout_s`` the socket is shut down under it. Never raises; False if it had to force."""
+    if bus is None:
+        return True
+
+    def run():
+        try:
+            bus.shutdown()
+        except Exception:  # noqa: BLE001 - the hub may already be gone
+            pass
+
+    t = threading.Thread(target=run, daemon=True, name="bus-shutdown")
+    t.start()
+    t.join(timeout_s)
+    if not t.is_alive():
+        return True
+    sock = getattr(bus, "socket", None)
+    if sock is not None:
+        try:
+            sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        try:
+            sock.close()
+        except OSError:
+            pass
+    t.join(1.0)
+    try:
+        bus._is_shutdown = True         # (python-can's flag: no second attempt at exit)
+    except AttributeError:
+        pass
+    return False
 
 
 def resolve(interface: Optional[str] = None, channel: Optional[str] = None

@@ -7,6 +7,7 @@ import contextlib
 import json
 import math
 import sys
+from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
 from calib.options import load_options
@@ -79,6 +80,44 @@ def seed_arg(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"seed must be non-negative, got {text!r}")
     return value
+
+
+_OUT_LOCKS: dict = {}
+
+
+def lock_out(path: str | Path) -> Path:
+    """Create ``--out DIR`` if needed and lock it for this process (``DIR/.lock``, flock): a
+    second run on the same directory refuses with one line (exit 2) instead of mixing its
+    files into this one's. The lock goes with the process; a process may lock its own
+    directory again."""
+    import fcntl
+    import os
+
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        fail(f"--out {out}: cannot create the directory: {exc.strerror or exc}")
+    if not out.is_dir():
+        fail(f"--out {out}: not a directory")
+    key = out.resolve()
+    if key in _OUT_LOCKS:
+        return out
+    try:
+        fd = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        fail(f"--out {out}: not writable: {exc.strerror or exc}")
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        fail(f"--out {out} is in use by another run (pid {holder}); wait for it or choose "
+             f"another directory")
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    _OUT_LOCKS[key] = fd
+    return out
 
 
 def vehicle_or_exit(path: str | None) -> VehicleConfig:

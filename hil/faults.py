@@ -530,6 +530,9 @@ def main(args) -> int:
 
             fail(f"faults: unknown fault(s) {', '.join(unknown)} "
                  f"(known: {', '.join(BY_NAME)})")
+    from hil.cli import lock_out
+
+    lock_out(args.out)
     t0 = time.monotonic()
     results = campaign(Path(args.out), in_process=args.in_process, seed=args.seed, names=names,
                        interface=getattr(args, "interface", None),

@@ -20,7 +20,7 @@ from typing import Optional
 import can
 import numpy as np
 
-from hil.bus import BusError, resolve, set_rt_priority
+from hil.bus import BusError, close_bus, resolve, set_rt_priority
 
 try:
     from can_remote.websocket import WebsocketClosed
@@ -33,6 +33,8 @@ EXIT_PARTNER = 4
 PARTNER_TIMEOUT_S = 10.0
 SPIN_S = 0.0004             # realtime plant: sleep until this close to a deadline, then spin
 WATCHDOG_TICKS = 3          # realtime ECU: no sensor frame for 3 periods -> timer ticks
+QUIET_AFTER_S = 1.0         # ... every period for this long, then every QUIET_PERIOD_S
+QUIET_PERIOD_S = 0.1        # (the fail-safe state is held; the bus is not flooded)
 
 
 class Stop:
@@ -191,13 +193,16 @@ def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> 
     """ECU and app: react to frames until stopped. ``watchdog_ticks`` (the ECU in realtime
     pacing): once sensor frames have started, when none has come for that many tick periods,
     the ECU's own timer runs a tick without sensor data (fail-safe, timeout named) every
-    period until frames come back; the bus going silent is thus detected and reported."""
+    period until frames come back; the bus going silent is thus detected and reported. After
+    ``QUIET_AFTER_S`` of silence the timer ticks every ``QUIET_PERIOD_S`` only: the fail-safe
+    state and its status go on, at a rate that cannot fill a log."""
     tick = getattr(node, "tick", None)
     dt = getattr(getattr(node, "params", None), "dt_s", 0.001)
     from hil.nodes import ID
 
     sensors = ID["PLANT_SENSORS"]
     last = None                      # time of the last sensor frame or timer tick
+    last_frame = 0.0                 # time of the last sensor frame
     while not stop.flag:
         timeout = 0.2
         if watchdog_ticks and last is not None:
@@ -208,13 +213,15 @@ def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> 
             if replies:
                 _send(bus, replies)
             if msg.arbitration_id == sensors:
-                last = time.monotonic()
+                last = last_frame = time.monotonic()
         if tick is None:
             continue
+        now = time.monotonic()
         if watchdog_ticks and last is not None and \
-                time.monotonic() - last >= watchdog_ticks * dt and not node.ready():
+                now - last >= watchdog_ticks * dt and not node.ready():
             node.timer_tick()        # then once per period (no catching up)
-            last = time.monotonic() - (watchdog_ticks - 1) * dt
+            period = dt if now - last_frame < QUIET_AFTER_S else QUIET_PERIOD_S
+            last = now - watchdog_ticks * dt + period
         while node.ready():
             _send(bus, node.tick())
             node.record()
@@ -345,8 +352,5 @@ def main(role: str, args) -> int:
         summary["stopped"] = stop.flag
         summary["exit_code"] = code
         _write(out, role, summary, node.trace() if hasattr(node, "trace") else None)
-        try:
-            bus.shutdown()
-        except Exception:  # noqa: BLE001 - the hub may already be gone
-            pass
+        close_bus(bus)
     return code

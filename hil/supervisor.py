@@ -4,8 +4,11 @@ Starts the hub (when the kernel has no vcan0), a logger on the bus (``DIR/bus.lo
 frame), then the ECU and the driver app, then the plant, which owns simulated time. Shows a
 live view, and when the plant has driven the route stops the ECU and the app, checks that the
 log holds every frame the nodes report sending, and writes ``DIR/report.json`` (the schema of
-``hil sim --json``), ``DIR/report.md`` and the figures. Ctrl-C or a node that dies stops
-everything: nodes by PID, log flushed, a one-line reason, non-zero exit.
+``hil sim --json``), ``DIR/report.md`` and the figures, with the run's verdict. Ctrl-C,
+SIGTERM, SIGHUP, a node that dies and a node (or the hub) that makes no progress for
+``--stall-s`` each stop everything the same way: nodes by PID, the bus closed in bounded
+time, the log flushed, a one-line reason, a partial report marked ``incomplete``, non-zero
+exit. ``--out`` is locked for the run.
 """
 
 from __future__ import annotations
@@ -23,15 +26,17 @@ from typing import Optional
 import numpy as np
 
 from firmware.params import GRADE_NAMES, MODE_NAMES
-from hil.bus import RT_PRIORITY, BusError, BusSpec, Hub, die_with_parent, resolve, rt_of
+from hil import sil, verdict
+from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, close_bus, die_with_parent,
+                     resolve, rt_of)
 from hil.buslog import BusLogFile
 from hil.codec import Codec
-from hil import verdict
 from hil.nodes import ID, LockstepClock, message_name
 
 EXIT_NODE = 1
 EXIT_INTERRUPTED = 130
 READY_TIMEOUT_S = 60.0
+STALL_S = 20.0               # no progress for this long stops the run (--stall-s)
 NODES = ("ecu", "app", "plant")
 
 
@@ -82,10 +87,19 @@ class Node:
             lines = []
         return lines[-1] if lines else "(no message)"
 
+    def terminate(self) -> None:
+        """SIGTERM (and SIGCONT: a stopped node handles it only once resumed)."""
+        if self.proc.poll() is None:
+            for sig in (signal.SIGTERM, signal.SIGCONT):
+                try:
+                    self.proc.send_signal(sig)
+                except OSError:
+                    pass
+
     def stop(self, timeout_s: float = 10.0) -> Optional[int]:
         """SIGTERM, then SIGKILL after ``timeout_s``. Returns the exit code."""
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
+            self.terminate()
             try:
                 self.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:
@@ -109,6 +123,10 @@ class Logger(threading.Thread):
         self._stop_evt = threading.Event()
         self._watch = {ID[n] for n in ("ECU_STATUS", "MODE_RECOMMEND", "ENERGY_STATUS",
                                        "SIM_TRUTH", "VEHICLE_SPEED", "DRIVER_REQUEST")}
+        now = time.monotonic()
+        self.last_seen: dict[int, float] = {}   # frame ID -> when last seen (monotonic)
+        self.last_any, self.last_fid = now, None
+        self.since = now                        # progress is watched from here
 
     def run(self) -> None:
         last_flush = time.monotonic()
@@ -122,6 +140,8 @@ class Logger(threading.Thread):
                 if msg is None:
                     continue
                 fid, data = msg.arbitration_id, bytes(msg.data)
+                self.last_seen[fid] = self.last_any = now
+                self.last_fid = fid
                 # realtime: the receive time here (candump semantics; senders' own stamps
                 # interleave out of order when two nodes send independently)
                 ts = self.clock.stamp(fid) if self.clock else time.time()
@@ -136,6 +156,31 @@ class Logger(threading.Thread):
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
             self.log.flush()
+
+    def seen(self, name: str) -> float:
+        return self.last_seen.get(ID[name], self.since)
+
+    def stalled(self, now: float, stall_s: float, realtime: bool) -> Optional[str]:
+        """The node that has made no progress for ``stall_s``, or None. Lockstep: the bus
+        fell silent; it was the turn of the node that must answer the last frame. Realtime:
+        the plant sent no sensor frame, or the ECU no command, or the app left a
+        recommendation unanswered, for that long."""
+        if not realtime:
+            if now - max(self.last_any, self.since) < stall_s:
+                return None
+            fid = self.last_fid
+            if fid is None or fid == ID["ACTUATOR_CMD"]:
+                return "plant"
+            if fid == ID["MODE_RECOMMEND"]:
+                return "app"
+            return "ecu"
+        if now - self.seen("PLANT_SENSORS") >= stall_s:
+            return "plant"
+        if now - self.seen("ACTUATOR_CMD") >= stall_s:
+            return "ecu"
+        if self.seen("MODE_RECOMMEND") - self.seen("DRIVER_REQUEST") >= stall_s:
+            return "app"
+        return None
 
     def wait_for(self, count: int, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -184,7 +229,28 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
     return t
 
 
-def run(args) -> int:
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C, SIGTERM or SIGHUP: the run stops the same way for each."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _on_signals():
+    """SIGTERM and SIGHUP raise like Ctrl-C (once; a repeat during the cleanup is ignored).
+    Returns the previous handlers."""
+    fired = []
+
+    def handler(signum, _frame):
+        if not fired:
+            fired.append(signum)
+            raise Interrupted(signum)
+
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGHUP)}
+
+
+def _check_inputs(args):
     from hil.cli import design_or_exit, fail, route_or_exit, vehicle_or_exit
     from hil.config import ConfigError, load_driver_script
 
@@ -198,8 +264,40 @@ def run(args) -> int:
             fail(str(exc))
     if args.driver == "script" and not args.script:
         fail("run: --driver script needs --script FILE")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    return cfg, route
+
+
+def _node_argvs(args, spec: BusSpec, out: Path, rt: int) -> dict[str, list[str]]:
+    common = ["-i", spec.interface, "-c", spec.channel, "--out", str(out), "--pace", args.pace]
+    if args.vehicle:
+        common += ["--vehicle", args.vehicle]
+    ecu = [*common, "--mode", args.mode, "--rt-priority", str(rt_of(rt, "ecu"))]
+    for flag, value in (("--controller", args.controller), ("--gains", args.gains),
+                        ("--design", args.design)):
+        if value:
+            ecu += [flag, value]
+    if args.fixed_point:
+        ecu += ["--fixed-point"]
+    app = [*common, "--mode", args.mode, "--quiet", "--rt-priority", str(rt_of(rt, "app"))]
+    if args.driver:
+        app += ["--policy", args.driver]
+    if args.script:
+        app += ["--script", args.script]
+    plant = [*common, "--route", args.route, "--seed", str(args.seed),
+             "--rt-priority", str(rt_of(rt, "plant"))]
+    if getattr(args, "inject", None):       # hil faults: the injector's plan
+        plant += ["--inject", args.inject]
+        app += ["--inject", args.inject]
+    if args.duration is not None:
+        plant += ["--duration", repr(args.duration)]
+    return {"ecu": ecu, "app": app, "plant": plant}
+
+
+def run(args) -> int:
+    from hil.cli import lock_out
+
+    cfg, route = _check_inputs(args)
+    out = lock_out(args.out)
     from hil.figures import FIGURES
 
     stale = [f"{n}{x}" for n in NODES for x in (".json", ".npz", ".log")]
@@ -214,8 +312,9 @@ def run(args) -> int:
     nodes: dict[str, Node] = {}
     logger: Optional[Logger] = None
     log_bus = None
-    code = 0
+    code, reason = 0, None
     t_start = time.monotonic()
+    previous = _on_signals()
     try:
         spec, needs_hub = resolve(getattr(args, "interface", None),
                                   getattr(args, "channel", None))
@@ -232,39 +331,14 @@ def run(args) -> int:
         logger = Logger(log_bus, BusLogFile(out / "bus.log"), args.pace == "lockstep", dt,
                         Codec())
         logger.start()
-        bus_args = ["-i", spec.interface, "-c", spec.channel]
-        common = [*bus_args, "--out", str(out), "--pace", args.pace]
-        if args.vehicle:
-            common += ["--vehicle", args.vehicle]
-        ecu_argv = [*common, "--mode", args.mode, "--rt-priority", str(rt_of(rt, "ecu"))]
-        if args.controller:
-            ecu_argv += ["--controller", args.controller]
-        if args.gains:
-            ecu_argv += ["--gains", args.gains]
-        if args.design:
-            ecu_argv += ["--design", args.design]
-        if args.fixed_point:
-            ecu_argv += ["--fixed-point"]
-        app_argv = [*common, "--mode", args.mode, "--quiet", "--rt-priority",
-                    str(rt_of(rt, "app"))]
-        if args.driver:
-            app_argv += ["--policy", args.driver]
-        if args.script:
-            app_argv += ["--script", args.script]
-        plant_argv = [*common, "--route", args.route, "--seed", str(args.seed),
-                      "--rt-priority", str(rt_of(rt, "plant"))]
-        if getattr(args, "inject", None):       # hil faults: the injector's plan
-            plant_argv += ["--inject", args.inject]
-            app_argv += ["--inject", args.inject]
-        if args.duration is not None:
-            plant_argv += ["--duration", repr(args.duration)]
-        for name, argv in (("ecu", ecu_argv), ("app", app_argv)):
-            nodes[name] = Node(name, argv, out)
+        argvs = _node_argvs(args, spec, out, rt)
+        for name in ("ecu", "app"):
+            nodes[name] = Node(name, argvs[name], out)
         for name in ("ecu", "app"):
             nodes[name].wait_ready(READY_TIMEOUT_S)
-        nodes["plant"] = Node("plant", plant_argv, out)
+        nodes["plant"] = Node("plant", argvs["plant"], out)
         nodes["plant"].wait_ready(READY_TIMEOUT_S)
-        _watch(nodes, logger, n, dt, route, args)
+        _watch(nodes, hub, logger, n, dt, route, args)
         for name in ("ecu", "app"):
             rc = nodes[name].stop()
             if rc not in (0, None):
@@ -274,41 +348,52 @@ def run(args) -> int:
         sent = sum(sum(s["frames_sent"].values()) for s in summaries.values())
         if not logger.wait_for(sent, 10.0):
             raise NodeFailure(f"bus.log holds {logger.log.count} frames, the nodes sent {sent}")
-    except KeyboardInterrupt:
-        say(f"interrupted at t = {logger.ticks * dt if logger else 0.0:.2f} s; nodes stopped, "
-            f"{out / 'bus.log'} flushed")
-        code = EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+        what = "" if signum == signal.SIGINT else f" ({signal.Signals(signum).name})"
+        reason = (f"interrupted{what} at t = {logger.ticks * dt if logger else 0.0:.2f} s")
+        say(f"{reason}; nodes stopped, {out / 'bus.log'} flushed")
+        code = EXIT_INTERRUPTED if signum == signal.SIGINT else 128 + signum
     except NodeFailure as exc:
+        reason = str(exc)
         say(f"run failed: {exc}")
         code = EXIT_NODE
     except BusError as exc:
+        reason = str(exc)
         say(f"run failed: {exc}")
         code = 3
     finally:
-        for node in nodes.values():
-            node.stop(5.0)
-        if logger is not None:
-            logger.stop()
-            logger.log.close()
-        if log_bus is not None:
-            try:
-                log_bus.shutdown()
-            except Exception:  # noqa: BLE001 - the hub may be gone
-                pass
-        if hub is not None:
-            hub.stop()
+        _shut_down(nodes, logger, log_bus, hub)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     if code:
+        _partial_report(out, cfg, route, args, n, dt, logger, reason)
         return code
-    wall = time.monotonic() - t_start
-    from hil import sil
+    return _report(out, cfg, route, args, n, dt, summaries, logger, time.monotonic() - t_start,
+                   spec)
+
+
+def _shut_down(nodes: dict, logger: Optional[Logger], log_bus, hub: Optional[Hub]) -> None:
+    """Everything this run started, in bounded time: nodes by PID (SIGTERM, SIGKILL after
+    5 s), the logger (the log flushed and closed), the bus connection, the hub."""
+    for node in nodes.values():
+        node.terminate()                 # all at once, then wait for each
+    for node in nodes.values():
+        node.stop(5.0)
+    if logger is not None:
+        logger.stop()
+        logger.log.close()
+    close_bus(log_bus)
+    if hub is not None:
+        hub.stop()
+
+
+def _report(out: Path, cfg, route, args, n: int, dt: float, summaries: dict, logger: Logger,
+            wall: float, spec: BusSpec) -> int:
     from hil.figures import write_outputs
     from hil.report import finish, render_sil
 
-    plant_tr = dict(np.load(out / "plant.npz"))
-    ecu_tr = dict(np.load(out / "ecu.npz"))
-    trace = sil.merge_traces(dt, plant_tr, ecu_tr)
-    report = sil.build_report(cfg, route, args.mode, args.controller, args.seed, trace,
-                              summaries["plant"], summaries["ecu"], summaries["app"])
+    report, trace = _build(out, cfg, route, args, dt, summaries)
     report["bench"] = {"harness": "hil", "pace": args.pace, "bus": spec.interface,
                        "frames_logged": logger.log.count, "wall_s": wall,
                        "rtf": trace.segment.size * dt / wall}
@@ -328,6 +413,56 @@ def run(args) -> int:
     if not args.json:
         print(f"report: {out / 'report.md'} (and report.json, bus.log, figures)")
     return verdict.exit_code(report)
+
+
+def _build(out: Path, cfg, route, args, dt: float, summaries: dict):
+    plant_tr = dict(np.load(out / "plant.npz"))
+    ecu_tr = dict(np.load(out / "ecu.npz"))
+    trace = sil.merge_traces(dt, plant_tr, ecu_tr)
+    report = sil.build_report(cfg, route, args.mode, args.controller, args.seed, trace,
+                              summaries["plant"], summaries["ecu"], summaries["app"])
+    return report, trace
+
+
+def _partial_report(out: Path, cfg, route, args, n: int, dt: float, logger: Optional[Logger],
+                    reason: Optional[str]) -> None:
+    """A run that did not finish still leaves ``report.json`` and ``report.md``: what the
+    nodes recorded up to their stop (when they could write it), marked ``incomplete`` with
+    the reason, verdict ``fail``. Never raises."""
+    from hil.figures import markdown
+    from hil.report import write_json
+
+    reason = reason or "the run did not finish"
+    try:
+        summaries = {name: json.loads((out / f"{name}.json").read_text()) for name in NODES}
+        report, _ = _build(out, cfg, route, args, dt, summaries)
+    except Exception as exc:  # noqa: BLE001 - a node died before it wrote its record
+        report = {"route": route.name, "mode": args.mode, "controller": args.controller,
+                  "seed": args.seed, "vehicle": cfg.source, "duration_s": 0.0, "segments": [],
+                  "grade_accuracy": float("nan"), "mode_switches": 0, "grade_changes": 0,
+                  "settle_s": sil.SETTLE_S, "trace_sha256": "", "energy": {},
+                  "driver": {"policy": args.driver, "requests": {}}, "frames_sent": {},
+                  "records": f"not all node records were written ({type(exc).__name__})"}
+    report["incomplete"] = reason
+    report["bench"] = {"harness": "hil", "pace": args.pace,
+                       "frames_logged": logger.log.count if logger else 0}
+    checks = [verdict.check("complete", 0, "==", 1),
+              verdict.check("span_s", report["duration_s"], "==", n * dt)]
+    verdict.attach(report, checks)
+    try:
+        from hil.cli import _clean
+
+        write_json(_clean(report), out, "report.json")
+        (out / "report.md").write_text(markdown(report, []))
+    except Exception as exc:  # noqa: BLE001 - the reason was already said; say this too
+        print(f"run failed: could not write the partial report: {exc}", file=sys.stderr)
+    if getattr(args, "junit", None):
+        verdict.write_junit(args.junit, f"hil run {route.name} {args.mode} {args.pace}",
+                            [verdict.Check(**c) for c in report["checks"]])
+    if args.json:
+        from hil.cli import emit
+
+        emit(report, True, lambda _: None)
 
 
 def run_checks(report: dict, summaries: dict, logged_by_id: dict, n: int, dt: float,
@@ -351,8 +486,21 @@ def run_checks(report: dict, summaries: dict, logged_by_id: dict, n: int, dt: fl
         limits=verdict.limits_of(args))
 
 
-def _watch(nodes: dict, logger: Logger, n: int, dt: float, route, args) -> None:
-    """Until the plant is done: a live view, and stop at the first node that dies."""
+def _stopped(pid: int) -> bool:
+    """The process is stopped (SIGSTOP, a debugger): state T or t in /proc."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2:][:1] in ("T", "t")
+
+
+def _watch(nodes: dict, hub: Optional[Hub], logger: Logger, n: int, dt: float, route,
+           args) -> None:
+    """Until the plant is done: a live view; stop at the first node that dies, and at the
+    first that makes no progress for ``--stall-s`` (named: a stopped process first, else
+    the node whose turn it was)."""
+    stall_s = getattr(args, "stall_s", None) or STALL_S
     live = None
     if not args.json and sys.stderr.isatty():
         from rich.console import Console
@@ -362,6 +510,7 @@ def _watch(nodes: dict, logger: Logger, n: int, dt: float, route, args) -> None:
                     console=Console(stderr=True), refresh_per_second=4, transient=False)
         live.start()
     last_print = -1
+    logger.since = time.monotonic()
     try:
         while True:
             plant_rc = nodes["plant"].proc.poll()
@@ -372,12 +521,25 @@ def _watch(nodes: dict, logger: Logger, n: int, dt: float, route, args) -> None:
                                       f"{logger.ticks * dt:.2f} s: {nodes[name].last_error()}")
             if logger.error:
                 raise NodeFailure(f"logger lost the bus: {logger.error}")
+            procs = {name: node.proc.pid for name, node in nodes.items()}
+            if hub is not None and hub.proc is not None:
+                procs["hub"] = hub.proc.pid
             if plant_rc is not None:
                 if plant_rc != 0:
+                    held = [name for name, pid in procs.items() if _stopped(pid)]
                     raise NodeFailure(f"node plant exited with code {plant_rc} at t = "
                                       f"{logger.ticks * dt:.2f} s: "
-                                      f"{nodes['plant'].last_error()}")
+                                      f"{nodes['plant'].last_error()}"
+                                      + (f" ({', '.join(held)} stopped)" if held else ""))
                 return
+            stuck = logger.stalled(time.monotonic(), stall_s, args.pace == "realtime")
+            if stuck is not None:
+                held = [name for name, pid in procs.items() if _stopped(pid)]
+                who = held[0] if held else stuck
+                raise NodeFailure(f"{'the hub' if who == 'hub' else 'node ' + who} made no "
+                                  f"progress for {stall_s:g} s"
+                                  f"{' (the process is stopped)' if held else ''} at t = "
+                                  f"{logger.ticks * dt:.2f} s")
             if live is not None:
                 live.update(_view(logger, n, dt, route, args.mode, args.pace))
             elif not args.json:

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hil.bus import BusError, BusSpec, Hub, kernel_has_vcan, resolve
+from hil.bus import BusError, BusSpec, Hub, close_bus, kernel_has_vcan, resolve
 
 pytestmark = pytest.mark.hil
 
@@ -46,6 +46,27 @@ def test_hub_relays_frames_between_clients_and_stops_cleanly():
             b.shutdown()
         pid = hub.proc.pid
     assert hub.proc.poll() is not None, f"hub {pid} still running"
+
+
+def test_closing_the_bus_is_bounded_when_the_hub_is_stopped():
+    """can_remote's shutdown waits for the hub's close handshake; with the hub stopped
+    (SIGSTOP) ``close_bus`` gives up after its timeout and leaves no second attempt."""
+    import os
+    import signal
+    import time
+
+    with Hub() as hub:
+        bus = BusSpec("remote", hub.url).open()
+        os.kill(hub.proc.pid, signal.SIGSTOP)
+        try:
+            t0 = time.monotonic()
+            assert close_bus(bus, timeout_s=1.0) is False
+            assert time.monotonic() - t0 < 3.0
+            assert bus._is_shutdown
+        finally:
+            os.kill(hub.proc.pid, signal.SIGCONT)
+        bus = BusSpec("remote", hub.url).open()
+        assert close_bus(bus) is True                    # a live hub: the normal handshake
 
 
 def test_unreachable_bus_says_so():

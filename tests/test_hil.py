@@ -141,9 +141,10 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def _start_and_wait_for_nodes(out: Path):
+def _start_and_wait_for_nodes(out: Path, *extra):
     sup = subprocess.Popen([sys.executable, "-m", "hil", "run", "--out", str(out),
-                            "--route", str(ROUTES / "override.toml"), "--mode", "comfort"],
+                            "--route", str(ROUTES / "override.toml"), "--mode", "comfort",
+                            *extra],
                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                            preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120
@@ -182,6 +183,74 @@ def test_ctrl_c_stops_everything_and_flushes_the_log(tmp_path):
     assert not [pid for pid in kids if _alive(pid)]
     text = (tmp_path / "bus.log").read_text()
     assert text.endswith("\n") and len(read_log(tmp_path / "bus.log")) > 1000
+
+
+def _stalled_run(tmp_path, who: str, *extra):
+    """Stop one process of a running bench (SIGSTOP, our own child by PID): the supervisor
+    must stop the run in bounded time, name it, leave nothing running and a partial report."""
+    sup, kids = _start_and_wait_for_nodes(tmp_path, "--stall-s", "3", "--json", *extra)
+    pid = next(p for p, c in kids.items() if who in c)
+    t0 = time.monotonic()
+    os.kill(pid, signal.SIGSTOP)
+    out, err = sup.communicate(timeout=60)
+    took = time.monotonic() - t0
+    time.sleep(0.5)
+    assert not [p for p in kids if _alive(p)]            # no orphan, the stopped one included
+    rep = json.loads(out)
+    assert rep["verdict"] == "fail" and rep["incomplete"] in err
+    assert json.loads((tmp_path / "report.json").read_text())["incomplete"] == rep["incomplete"]
+    assert (tmp_path / "bus.log").read_bytes().endswith(b"\n")
+    return sup.returncode, err, took
+
+
+@pytest.mark.parametrize("who,name", [(" plant ", "node plant"), (" ecu ", "node ecu"),
+                                      ("hil.hub", "the hub")])
+def test_a_stopped_process_stops_the_run_and_is_named(tmp_path, who, name):
+    code, err, took = _stalled_run(tmp_path, who)
+    assert code == 1
+    assert f"{name} made no progress for 3 s (the process is stopped)" in err
+    assert took < 30                                      # 3 s, then a bounded shutdown
+
+
+def test_a_stopped_plant_in_realtime_stops_the_run(tmp_path):
+    code, err, _ = _stalled_run(tmp_path, " plant ", "--pace", "realtime")
+    assert code == 1 and "node plant made no progress" in err
+    # the ECU's fail-safe timer went quiet after a second of silence: 3 s of it are a few
+    # thousand frames, not 3 x 1,200 per second
+    frames = read_log(tmp_path / "bus.log")
+    t_last_sensor = max(f[0] for f in frames if f[1] == ID["PLANT_SENSORS"])
+    after = [f for f in frames if f[0] > t_last_sensor + 1.2]
+    assert len(after) < 200, len(after)
+
+
+@pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+def test_sigterm_and_sighup_stop_the_run_like_ctrl_c(tmp_path, sig, code):
+    sup, kids = _start_and_wait_for_nodes(tmp_path)
+    sup.send_signal(sig)
+    _, err = sup.communicate(timeout=60)
+    assert sup.returncode == code
+    assert f"interrupted ({signal.Signals(sig).name}) at t =" in err
+    time.sleep(0.5)
+    assert not [pid for pid in kids if _alive(pid)]
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["verdict"] == "fail" and rep["incomplete"].startswith("interrupted")
+    # the nodes wrote their records on SIGTERM: the partial report covers what was driven
+    assert 0 < rep["duration_s"] < 30 and rep["segments"]
+    assert (tmp_path / "bus.log").read_text().endswith("\n")
+
+
+def test_a_second_run_on_the_same_out_refuses(tmp_path):
+    sup, _ = _start_and_wait_for_nodes(tmp_path)
+    try:
+        for cmd in (["run", "--duration", "1"], ["sim", "--duration", "1"]):
+            proc = subprocess.run([sys.executable, "-m", "hil", *cmd, "--out", str(tmp_path)],
+                                  capture_output=True, text=True, cwd=ROOT, timeout=120)
+            assert proc.returncode == 2
+            assert proc.stderr.count("\n") == 1 and "is in use by another run" in proc.stderr
+    finally:
+        sup.send_signal(signal.SIGINT)
+        sup.communicate(timeout=60)
+    assert sup.returncode == 130
 
 
 def test_a_node_without_a_bus_says_so():
