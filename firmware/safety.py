@@ -56,6 +56,7 @@ def crc8(data: bytes | bytearray) -> int:
 
 # ---------------------------------------------------------------- the fault word
 # bits 0-4: the ADC channels (firmware.adc.FAULT_BIT, in adc.CHANNELS order)
+FAULT_AUTH = 1 << 5               # a secured message failed its SecOC check (ignored)
 FAULT_RATE = 1 << 7               # a message (or driver request) arrived faster than allowed
 FAULT_NONFINITE_ESTIMATE = 1 << 8  # the estimator diverged (reset, fail-safe this tick)
 FAULT_INVALID_REQUEST = 1 << 9    # driver request with an invalid mode (informational)
@@ -68,7 +69,8 @@ FAULT_UNKNOWN_ID = 1 << 14
 FAULT_RANGE = 1 << 15             # a signal outside its declared range
 
 FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
-               FAULT_RATE: "rate", FAULT_NONFINITE_ESTIMATE: "estimator_reset",
+               FAULT_AUTH: "auth", FAULT_RATE: "rate",
+               FAULT_NONFINITE_ESTIMATE: "estimator_reset",
                FAULT_INVALID_REQUEST: "invalid_request", FAULT_DLC: "dlc",
                FAULT_CHECKSUM: "checksum", FAULT_COUNTER: "counter",
                FAULT_TIMEOUT: "timeout", FAULT_UNKNOWN_ID: "unknown_id",

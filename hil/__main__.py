@@ -34,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     add_vehicle_argument(p)
     add_json_argument(p)
     sub.add_parser("routes", help="list the shipped routes")
+    p = sub.add_parser("keygen", help="write a new SecOC key file (16 random bytes, mode 0600)")
+    p.add_argument("file", metavar="FILE")
     p = sub.add_parser("sim", help="software-in-the-loop: the whole ECU against the plant, "
                                    "with a passive twin on the same road")
     p.add_argument("--route", default="full_road_section",
@@ -52,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", metavar="DIR", help="write DIR/report.json, report.md, figures "
                    "and DIR/bus.log (every frame, candump -L)")
     _fixed_argument(p)
+    _key_argument(p)
     add_vehicle_argument(p)
     add_json_argument(p)
     verdict.add_arguments(p)
@@ -74,6 +77,18 @@ def main(argv: list[str] | None = None) -> int:
 
         return faults.main(args)
 
+    if args.command == "keygen":
+        from hil import secoc
+        from hil.cli import fail
+
+        try:
+            secoc.write_key(args.file)
+        except FileExistsError:
+            fail(f"{args.file} exists; a key file is never overwritten")
+        except OSError as exc:
+            fail(f"{args.file}: {exc.strerror or exc}")
+        print(f"wrote {args.file} (AES-128 key, mode 0600)")
+        return 0
     if args.command == "routes":
         from hil.road import load_route, shipped_routes
 
@@ -94,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 MODE_CHOICES = config.MODE_CHOICES
+RUN_OUT_HELP = ("write bus.log, report.json, report.md, the figures, each node's record and "
+                "log, and the run's SecOC key (secoc.key) into DIR (default: out/run)")
 CONTROLLER_CHOICES = tuple(config.CONTROLLERS)
 
 
@@ -103,6 +120,13 @@ def _driver_arguments(p) -> None:
                         "mode, refuse every recommendation)")
     p.add_argument("--script", metavar="FILE", help="driver script TOML ([[request]] tables "
                    "with t_s, kind = accept|refuse|choose, mode)")
+
+
+def _key_argument(p, node: bool = False) -> None:
+    p.add_argument("--key-file", metavar="FILE",
+                   help="the SecOC key file (hil/secoc.py; python -m hil keygen FILE)"
+                        + (" (required; hil run makes one per run)" if node else
+                           " (default: a new key for this run)"))
 
 
 def _fixed_argument(p) -> None:
@@ -118,6 +142,7 @@ def _node_parsers(sub) -> None:
                                        "print the summary)"):
         add_bus_arguments(p)
         p.add_argument("--out", metavar="DIR", help=out_help)
+        _key_argument(p, node=out_help != RUN_OUT_HELP)
         add_vehicle_argument(p)
         if pace:
             p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep")
@@ -138,11 +163,13 @@ def _node_parsers(sub) -> None:
                    help="stop after S simulated seconds (default: the whole route)")
     _driver_arguments(p)
     _fixed_argument(p)
-    common(p, out_help="write bus.log, report.json, report.md, the figures and each node's "
-                       "record and log into DIR (default: out/run)")
+    common(p, out_help=RUN_OUT_HELP)
     p.set_defaults(out="out/run", rt_priority=None)
     add_json_argument(p)
     verdict.add_arguments(p, realtime=True)
+    p.add_argument("--allow-external-tx", action="store_true",
+                   help="let hub clients that are not bench nodes send (injection tests; by "
+                        "default they are read-only and their frames are dropped)")
     p.add_argument("--stall-s", type=positive_float, default=None, metavar="S",
                    help="stop the run when a node (or the hub) makes no progress for S wall "
                         "seconds (default 20)")
@@ -198,7 +225,7 @@ def _sim(args) -> int:
     from pathlib import Path
 
     from hil import sil
-    from hil.cli import design_or_exit, fail, lock_out, progress_bar
+    from hil.cli import design_or_exit, fail, key_or_exit, lock_out, progress_bar
     from hil.buslog import BusLogFile
     from hil.config import ConfigError, load_driver_script
     from hil.figures import write_outputs
@@ -223,7 +250,7 @@ def _sim(args) -> int:
                 cfg, route, args.mode, args.seed, controller=args.controller,
                 gains_file=Path(args.gains) if args.gains else None, opts=opts, policy=args.driver,
                 script=script, progress=progress, duration_s=args.duration,
-                fixed_point=args.fixed_point,
+                fixed_point=args.fixed_point, key=key_or_exit(args.key_file),
                 on_frame=(lambda fid, data: log.write(fid, data, clock.stamp(fid)))
                 if log else None)
     except ConfigError as exc:

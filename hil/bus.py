@@ -25,6 +25,8 @@ from urllib.parse import urlparse
 
 import can
 
+from hil.auth import SECRET_ENV, credentials
+
 LOOPBACK = "127.0.0.1"
 FORBIDDEN_INTERFACES = ("udp_multicast",)
 RT_PRIORITY = 50            # SCHED_FIFO base priority of the bench's processes (realtime)
@@ -69,12 +71,14 @@ class BusSpec:
     interface: str
     channel: str
 
-    def open(self, timeout_s: float = 5.0,
-             can_filters: Optional[list[dict]] = None) -> can.BusABC:
+    def open(self, timeout_s: float = 5.0, can_filters: Optional[list[dict]] = None,
+             node: Optional[str] = None) -> can.BusABC:
         """Open the bus, retrying until ``timeout_s`` (a hub may still be starting).
         ``can_filters`` (python-can's acceptance filters) are applied where the frames are
         fanned out: in the kernel (socketcan) or in the hub (remote), so frames a node does not
-        read never reach its process."""
+        read never reach its process. ``node`` (a DBC node name): on a hub, authenticate as
+        that node with the run's secret (``HIL_HUB_SECRET`` in the environment), so the hub
+        relays the node's own messages; without it a hub client is read-only."""
         if self.interface in FORBIDDEN_INTERFACES:
             raise BusError(f"interface {self.interface!r} leaves the machine; not allowed")
         if self.interface == "remote":
@@ -82,14 +86,18 @@ class BusSpec:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
+                extra = {}
                 if self.interface == "remote":
                     fast_remote_client()
+                    extra = credentials(node)
                 bus = can.Bus(interface=self.interface, channel=self.channel,
-                              can_filters=can_filters)
+                              can_filters=can_filters, **extra)
                 if self.interface == "remote":
                     _no_delay(bus)
                 return bus
             except Exception as exc:  # noqa: BLE001 - every backend raises its own errors
+                if type(exc).__name__ == "RemoteError":     # the hub refused: final
+                    raise BusError(f"the hub at {self.channel} refused: {exc}") from None
                 if time.monotonic() >= deadline:
                     raise BusError(f"cannot reach the bus {self.interface}:{self.channel}: "
                                    f"{type(exc).__name__}: {exc}") from None
@@ -218,9 +226,15 @@ class Hub:
     """The bench's CAN hub (``hil.hub``: a single-threaded relay speaking python-can-remote's
     protocol), bound to 127.0.0.1, as a child process that only its owner stops (by PID)."""
 
-    def __init__(self, port: Optional[int] = None, rt_priority: int = 0):
+    def __init__(self, port: Optional[int] = None, rt_priority: int = 0,
+                 secret: Optional[str] = None, allow_external_tx: bool = False,
+                 allow_unknown_ids: bool = False, log_path: Optional[Path] = None):
         self.port = port or free_port()
         self.rt_priority = rt_priority
+        self.secret = secret                # hex; handed over in the environment only
+        self.flags = (["--allow-external-tx"] if allow_external_tx else []) + (
+            ["--allow-unknown-ids"] if allow_unknown_ids else [])
+        self.log_path = log_path
         self.proc: Optional[subprocess.Popen] = None
 
     @property
@@ -228,11 +242,19 @@ class Hub:
         return f"ws://{LOOPBACK}:{self.port}/"
 
     def start(self, timeout_s: float = 10.0) -> "Hub":
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hil.hub", "-p", str(self.port),
-             "--rt-priority", str(self.rt_priority)],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            start_new_session=True, preexec_fn=die_with_parent)
+        env = {k: v for k, v in os.environ.items() if k != SECRET_ENV}
+        if self.secret:
+            env[SECRET_ENV] = self.secret
+        err = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "hil.hub", "-p", str(self.port),
+                 "--rt-priority", str(self.rt_priority), *self.flags],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=env,
+                start_new_session=True, preexec_fn=die_with_parent)
+        finally:
+            if self.log_path:
+                err.close()
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:

@@ -120,6 +120,22 @@ def lock_out(path: str | Path) -> Path:
     return out
 
 
+def key_or_exit(path: str | None, required: bool = False) -> Optional[bytes]:
+    """The SecOC key of ``--key-file FILE`` (None without it, unless ``required``); a bad
+    file exits 2 with one line."""
+    from hil.secoc import load_key
+
+    if path is None:
+        if required:
+            fail("--key-file FILE is required (the SecOC key; `python -m hil keygen FILE` "
+                 "makes one, `python -m hil run` one per run)")
+        return None
+    try:
+        return load_key(path)
+    except ConfigError as exc:
+        fail(str(exc))
+
+
 def vehicle_or_exit(path: str | None) -> VehicleConfig:
     try:
         return load_vehicle(path)

@@ -376,7 +376,7 @@ def _route_file(out: Path, ticks: int, dt: float) -> Path:
 
 def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
     """The campaign with the three nodes in this process (the lockstep FIFO)."""
-    from hil import nodes
+    from hil import nodes, secoc
     from hil.codec import Codec
     from hil.config import default_vehicle
     from hil.road import load_route
@@ -387,10 +387,12 @@ def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
     n = campaign_ticks(windows)
     route = load_route(_route_file(out, n, dt))
     codec = Codec()
-    plant = nodes.PlantNode(cfg, route, seed, codec, inject=Injector(windows, "plant"))
+    key = secoc.new_key()
+    plant = nodes.PlantNode(cfg, route, seed, codec, inject=Injector(windows, "plant"),
+                            key=key)
     plant.n = min(plant.n, n)
-    ecu_node = nodes.EcuNode(ecu_params(cfg, CAMPAIGN_MODE), codec)
-    app = app_node(codec, CAMPAIGN_MODE, dt)
+    ecu_node = nodes.EcuNode(ecu_params(cfg, CAMPAIGN_MODE), codec, key=key)
+    app = app_node(codec, CAMPAIGN_MODE, dt, key=key)
     app.inject = Injector(windows, "app")
     crash = None
     try:
@@ -418,7 +420,7 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
         gains=None, design=None, duration=n * dt, out=str(out), pace="lockstep", json=False,
         vehicle=None,
         driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
-        inject=str(plan))
+        inject=str(plan), key_file=None)
     with contextlib.redirect_stdout(sys.stderr):
         code = supervisor.run(args)
     crash = None if code == 0 else f"hil run exited with code {code}"

@@ -27,6 +27,15 @@ with the reason in the hub's log (stderr) and an ``error`` event to the client; 
 other clients go on. A client may send at most ``RATE_LIMIT_FPS`` frames per second (a token
 bucket with one second of burst); frames beyond that are dropped and counted, and the count is
 logged when the client leaves.
+
+Who may send (``hil.auth``): a hub started with a secret (``HIL_HUB_SECRET`` in its
+environment, as ``hil run`` starts it) relays a client's frames only when the client
+authenticated as a bench node in its bus request and the frame is one the DBC names that node
+the transmitter of. Other clients (``can.logger``, ``can.viewer``, ``cantools monitor``) are
+read-only: they receive everything, and what they send is dropped and counted
+(``--allow-external-tx`` lets them send, for injection tests; ``--allow-unknown-ids`` lets
+nodes send IDs outside the DBC, for the fault campaign). A wrong token disconnects. A hub
+started by hand without a secret lets every client send, and says so.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ from __future__ import annotations
 import argparse
 import base64
 import hashlib
+import hmac
 import json
 import selectors
 import signal
@@ -42,6 +52,8 @@ import struct
 import sys
 import time
 from typing import Optional
+
+from hil import auth
 
 LOOPBACK = "127.0.0.1"
 CHANNEL_INFO = "hil.hub broadcast relay"
@@ -160,7 +172,7 @@ def frame_from_json(p) -> Frame:
 
 class Client:
     __slots__ = ("sock", "inbuf", "out", "state", "binary", "filters", "name", "closing",
-                 "tokens", "t_tokens", "rate_dropped")
+                 "tokens", "t_tokens", "rate_dropped", "node", "may_send", "denied")
 
     def __init__(self, sock: socket.socket, name: str):
         self.sock = sock
@@ -174,6 +186,9 @@ class Client:
         self.tokens = float("inf")            # the rate limit's bucket (frames; full)
         self.t_tokens = time.monotonic()
         self.rate_dropped = 0                  # frames dropped for the rate limit
+        self.node: Optional[str] = None        # the DBC node it authenticated as
+        self.may_send = None                   # IDs it may send (None: any)
+        self.denied = 0                        # frames dropped: not its to send
 
     def within_rate(self, rate: float) -> bool:
         """Take one frame from the bucket (refilled at ``rate`` per second, one second deep)."""
@@ -210,9 +225,19 @@ def parse_filters(raw) -> Optional[list[tuple[int, int, Optional[bool]]]]:
 
 class HubServer:
     def __init__(self, port: int, host: str = LOOPBACK, log=None,
-                 max_backlog: int = MAX_BACKLOG, rate_limit_fps: float = RATE_LIMIT_FPS):
+                 max_backlog: int = MAX_BACKLOG, rate_limit_fps: float = RATE_LIMIT_FPS,
+                 secret: Optional[bytes] = None, senders: Optional[dict] = None,
+                 allow_external_tx: bool = False, allow_unknown_ids: bool = False):
         if host != LOOPBACK:
             raise ValueError("the hub listens on 127.0.0.1 only")
+        # who may send what: with a secret, a client that authenticates as a DBC node may
+        # send that node's messages (``senders``: node -> frame IDs), any other is read-only
+        self.secret = secret
+        self.senders = senders or {}
+        self.known_ids = frozenset().union(*self.senders.values()) if self.senders else None
+        self.allow_external_tx = allow_external_tx
+        self.allow_unknown_ids = allow_unknown_ids
+        self.denied_frames = 0
         self.sel = selectors.DefaultSelector()
         self.listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -274,6 +299,9 @@ class HubServer:
 
     def _drop(self, c: Client) -> None:
         if c in self.clients:
+            if c.denied:
+                self.log(f"{c.name}{'' if c.node else ' (read-only)'}: {c.denied} frames "
+                         f"it may not send dropped")
             if c.rate_dropped:
                 self.log(f"{c.name}: {c.rate_dropped} frames over the rate limit "
                          f"({self.rate_limit_fps:g}/s) dropped")
@@ -414,7 +442,7 @@ class HubServer:
                 except BadMessage as exc:
                     self._reject(c, f"bad frame: {exc}")
                     return
-                if c.within_rate(self.rate_limit_fps):
+                if self._may_send(c, frame) and c.within_rate(self.rate_limit_fps):
                     self.relay(c, frame)
             return
         if opcode == _TEXT:
@@ -436,6 +464,8 @@ class HubServer:
                 except (AttributeError, KeyError, TypeError, ValueError, OverflowError) as exc:
                     self._reject(c, f"bad bus_request: {exc}")
                     return
+                if not self._authorise(c, cfg):
+                    return
                 c.state = "bus"
                 self._event(c, "bus_response", {"channel_info": CHANNEL_INFO})
             elif kind == "message":
@@ -444,7 +474,7 @@ class HubServer:
                 except BadMessage as exc:
                     self._reject(c, f"bad message: {exc}")
                     return
-                if c.within_rate(self.rate_limit_fps):
+                if self._may_send(c, frame) and c.within_rate(self.rate_limit_fps):
                     self.relay(c, frame)
             else:
                 self._event(c, "error", f"{kind!r} is not supported by this hub")
@@ -460,6 +490,39 @@ class HubServer:
                 pass
             if not c.out:
                 self._drop(c)
+
+    def _authorise(self, c: Client, cfg: dict) -> bool:
+        """Set what the client may send from its bus request: ``hil_node`` and ``hil_token``
+        (HMAC-SHA256 of the node name under the run's secret) make it that DBC node; without
+        them it is read-only (``allow_external_tx``: it may send anything); a wrong token
+        disconnects it. Without a secret (a hub started by hand) every client may send."""
+        if self.secret is None:
+            return True
+        node, token = cfg.get("hil_node"), cfg.get("hil_token")
+        if node is None and token is None:
+            c.may_send = None if self.allow_external_tx else frozenset()
+            return True
+        if not (isinstance(node, str) and isinstance(token, str) and node in self.senders
+                and hmac.compare_digest(token, auth.node_token(self.secret, node))):
+            self._reject(c, f"authentication as {node!r} failed")
+            return False
+        c.node = node
+        c.may_send = self.senders[node]
+        c.name = f"{c.name} {node}"
+        return True
+
+    def _may_send(self, c: Client, frame: Frame) -> bool:
+        allowed = c.may_send
+        if allowed is None or frame.arb_id in allowed or (
+                self.allow_unknown_ids and c.node is not None
+                and frame.arb_id not in self.known_ids):
+            return True
+        if not c.denied:
+            self.log(f"{c.name}{'' if c.node else ' (read-only)'} may not send "
+                     f"0x{frame.arb_id:X}: dropped (and every further frame it may not send)")
+        c.denied += 1
+        self.denied_frames += 1
+        return False
 
     def relay(self, src: Client, frame: Frame) -> None:
         """Send a frame to every other client on the bus whose filters accept it."""
@@ -480,18 +543,39 @@ class HubServer:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import os
+
+    from hil.auth import SECRET_ENV, dbc_senders
+
     ap = argparse.ArgumentParser("python -m hil.hub", description=__doc__.splitlines()[0])
     ap.add_argument("-p", "--port", type=int, required=True)
     ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
                     help="SCHED_FIFO priority (0: normal scheduling)")
+    ap.add_argument("--allow-external-tx", action="store_true",
+                    help="clients that do not authenticate may send (injection tests)")
+    ap.add_argument("--allow-unknown-ids", action="store_true",
+                    help="nodes may also send IDs the DBC does not define (the fault "
+                         "campaign's babbling sender)")
     args = ap.parse_args(argv)
+    secret = os.environ.pop(SECRET_ENV, None)
+    try:
+        key = bytes.fromhex(secret) if secret else None
+    except ValueError:
+        print(f"hil.hub: {SECRET_ENV} is not hex", file=sys.stderr)
+        return 2
     if args.rt_priority:
         from hil.bus import set_rt_priority
 
         got = set_rt_priority(args.rt_priority)
         if not got.startswith("SCHED_FIFO"):
             print(f"hil.hub: {got}", file=sys.stderr)
-    server = HubServer(args.port, log=lambda m: print(f"hil.hub: {m}", file=sys.stderr))
+    log = (lambda m: print(f"hil.hub: {m}", file=sys.stderr, flush=True))
+    if secret is None:
+        log(f"no {SECRET_ENV} in the environment: every client may send anything")
+    server = HubServer(args.port, log=log,
+                       secret=key, senders=dbc_senders() if key else None,
+                       allow_external_tx=args.allow_external_tx,
+                       allow_unknown_ids=args.allow_unknown_ids)
 
     def stop(*_):
         server.running = False

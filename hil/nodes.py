@@ -37,6 +37,7 @@ from calib.fx_tables import build_tables
 from firmware import ecu, safety
 from firmware import params as fp
 from firmware.path import FixedPath
+from hil import secoc
 from hil.codec import Codec
 from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
@@ -133,7 +134,7 @@ class PlantNode:
 
     def __init__(self, cfg: VehicleConfig, route: Route, seed: int, codec: Codec, *,
                  noise_step: Optional[tuple[float, float]] = None, cmd_timeout_ticks: int = 3,
-                 inject=None):
+                 inject=None, key: Optional[bytes] = None):
         self.cfg, self.route, self.seed, self.codec = cfg, route, seed, codec
         self.dt = dt = cfg.sim.plant_dt_s
         self.timeline = drive_timeline(route, dt)
@@ -160,6 +161,12 @@ class PlantNode:
         self.p_energy = period_ticks(codec, "ENERGY_STATUS", dt)
         self.cmd_rx = safety.RxState()
         self.cmd_rx_wire = safety.RxState()     # (fault campaign: every command on the wire)
+        # SecOC (key None: the unsecured path, for tests of the receive path only)
+        self.cmd_spec = codec.specs[ID["ACTUATOR_CMD"]]
+        self.cmd_auth = secoc.make(codec, key, receives=("ACTUATOR_CMD",))[1].get(
+            ID["ACTUATOR_CMD"])
+        self.cmd_auth_wire = copy.deepcopy(self.cmd_auth)
+        self.auth_failures = 0              # ACTUATOR_CMD frames with a bad MAC or freshness
         # the frames on_frame does nothing with (a bus harness may skip them)
         self.ignore = frozenset(ID.values()) - {ID["ACTUATOR_CMD"]}
         self.k = 0
@@ -215,12 +222,15 @@ class PlantNode:
                 # them: the ECU's tick is over all the same (lockstep), as a receiver that
                 # sees every frame on the wire judges it (the plant's own receiver rejects the
                 # first command after a loss: its COUNTER jumped)
-                w, _ = self.unpack_cmd(data, self.cmd_rx_wire, self.k)
-                on_wire = w is not None and self._answers(w[3])
+                w = self._checked(data, self.cmd_rx_wire, self.cmd_auth_wire)
+                on_wire = w is not None and w is not _FORGED and self._answers(w[3])
                 if self.inject.drop_rx(self, fid):
                     self.cmd_fresh |= on_wire
                     return []
-            v, _ = self.unpack_cmd(data, self.cmd_rx, self.k)
+            v = self._checked(data, self.cmd_rx, self.cmd_auth)
+            if v is _FORGED:
+                self.auth_failures += 1
+                return []
             if v is None:
                 self.bad_cmd_frames += 1
                 self.cmd_fresh |= on_wire
@@ -233,6 +243,17 @@ class PlantNode:
             else:
                 self.stale_cmd_frames += 1
         return []
+
+    def _checked(self, data: bytes, rx: safety.RxState, auth):
+        """The command's values if it is valid: DLC and CHECKSUM, then (SecOC) MAC and
+        freshness, then COUNTER and ranges; ``_FORGED`` for a bad MAC or freshness (the
+        COUNTER state untouched), None for an invalid frame."""
+        if auth is not None:
+            spec = self.cmd_spec
+            if len(data) == spec.dlc and data[spec.checksum_byte] == safety.checksum_of(
+                    spec, data) and not auth.verify(data):
+                return _FORGED
+        return self.unpack_cmd(data, rx, self.k)[0]
 
     def _answers(self, seq: int) -> bool:
         return seq == (self.tx.counters.get("PLANT_SENSORS", 0) - 1) & 0x3
@@ -272,7 +293,7 @@ class PlantNode:
     def summary(self) -> dict:
         out = {"node": "plant", "ticks": self.k, "frames_sent": dict(self.tx.sent),
                "energy": self.active.ledger.as_dict(), "bad_cmd_frames": self.bad_cmd_frames,
-               "stale_cmd_frames": self.stale_cmd_frames,
+               "stale_cmd_frames": self.stale_cmd_frames, "auth_failures": self.auth_failures,
                "missed_cmds": self.missed_cmds, "fallback_ticks": self.fallback_ticks}
         if self.inject is not None:
             out["injected"] = self.inject.applied
@@ -289,6 +310,7 @@ class PlantNode:
 
 
 MISSING = object()   # a tick without a sensor frame (SIM_TICK: the ECU's timer ran alone)
+_FORGED = object()   # a secured frame whose MAC or freshness failed
 
 
 class EcuNode:
@@ -303,7 +325,7 @@ class EcuNode:
     name = "ECU"
 
     def __init__(self, params: fp.EcuParams, codec: Codec, *, lockstep: bool = True,
-                 fixed_point: bool = False, record: bool = False):
+                 fixed_point: bool = False, record: bool = False, key: Optional[bytes] = None):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
         self.state = ecu.init(params, FixedPath(params, build_tables(params), record)
@@ -319,7 +341,14 @@ class EcuNode:
         self.rx_specs = {ID[c.message]: rx_spec(codec, c, dt) for c in safety.RX_CHECKS}
         self.spec_speed = self.rx_specs[ID["VEHICLE_SPEED"]]
         self.rx = {fid: safety.RxState() for fid in self.rx_specs}
-        self.listen = set(self.rx_specs) | {ID["SIM_TICK"]}
+        # SecOC: the command signed, the driver's request verified (key None: unsecured)
+        sec_tx, sec_rx = secoc.make(codec, key, sends=("ACTUATOR_CMD",),
+                                    receives=("DRIVER_REQUEST",))
+        self.cmd_sec = sec_tx.get(ID["ACTUATOR_CMD"])
+        self.req_auth = sec_rx.get(ID["DRIVER_REQUEST"])
+        self.req_spec = codec.specs[ID["DRIVER_REQUEST"]]
+        # SIM_TICK (the simulated timer tick of a suppressed sensor frame) only in lockstep
+        self.listen = set(self.rx_specs) | ({ID["SIM_TICK"]} if lockstep else set())
         # known frames of others (and SIM_TRUTH): on_frame does nothing with them
         self.ignore = frozenset(ID.values()) - self.listen
         self.k = 0
@@ -368,6 +397,12 @@ class EcuNode:
             else:
                 self._note(d.faults, "VEHICLE_SPEED")
         elif fid == ID["DRIVER_REQUEST"]:
+            auth, spec = self.req_auth, self.req_spec
+            if auth is not None and len(data) == spec.dlc and \
+                    data[spec.checksum_byte] == safety.checksum_of(spec, data) and \
+                    not auth.verify(data):
+                self._note(safety.FAULT_AUTH, "DRIVER_REQUEST")   # forged or replayed:
+                return []                                         # not the app's answer
             self.awaiting = max(0, self.awaiting - 1)
             if d.ok:
                 s = d.signals
@@ -413,6 +448,8 @@ class EcuNode:
         # the command first (realtime sends it first; the plant waits for it), then the rest
         cmd = self.tx.frame_packed("ACTUATOR_CMD", self.pack_cmd,
                                    (out.duty_q15, out.regen, out.enable, self.seq))
+        if self.cmd_sec is not None:
+            cmd = (cmd[0], self.cmd_sec.protect(cmd[1]))
         frames = []
         grade = UNKNOWN_GRADE_ON_BUS if out.grade == fp.GRADE_UNKNOWN else out.grade
         self.status_faults |= out.faults
@@ -504,7 +541,7 @@ class AppNode:
 
     def __init__(self, codec: Codec, policy: str = "auto", *, mode: int = fp.MODE_PASSIVE,
                  reaction_ticks: int = 1000, script: Optional[Iterable] = None,
-                 dt: float = 0.001, inject=None):
+                 dt: float = 0.001, inject=None, key: Optional[bytes] = None):
         if policy not in POLICIES:
             raise ValueError(f"unknown driver policy {policy!r} (one of {', '.join(POLICIES)})")
         self.codec, self.policy, self.mode, self.dt = codec, policy, mode, dt
@@ -528,6 +565,8 @@ class AppNode:
         self.faults_seen: list[tuple[int, int, int]] = []
         self.on_faults: Optional[Callable[[float, int, int], None]] = None
         self.inject = inject                 # hil.faults.Injector (fault campaign) or None
+        self.req_sec = secoc.make(codec, key, sends=("DRIVER_REQUEST",))[0].get(
+            ID["DRIVER_REQUEST"])
 
     def push(self, kind: str, mode: Optional[int] = None) -> None:
         self.queued.append((kind, mode))
@@ -589,8 +628,9 @@ class AppNode:
                 self._decide(int(s["RECOMMENDED_MODE"]), int(s["ACTIVE_MODE"]))
                 if self.inject is not None:
                     self.inject.before_answer(self)
-            return [self.tx.frame("DRIVER_REQUEST", {
-                "REQ_KIND": self.kind, "REQ_MODE": self.req_mode, "REQ_ID": self.req_id})]
+            fid, data = self.tx.frame("DRIVER_REQUEST", {
+                "REQ_KIND": self.kind, "REQ_MODE": self.req_mode, "REQ_ID": self.req_id})
+            return [(fid, self.req_sec.protect(data) if self.req_sec is not None else data)]
         return []
 
     def summary(self) -> dict:

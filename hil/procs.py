@@ -53,6 +53,7 @@ class PartnerSilent(RuntimeError):
     pass
 
 
+DBC_NODE = {"plant": "PLANT", "ecu": "ECU", "app": "APP"}   # the DBC node each role is
 # what each node reads (acceptance filters); the ECU reads everything: it must see unknown IDs
 READS = {"plant": ("ACTUATOR_CMD",), "app": ("ECU_STATUS", "VEHICLE_SPEED", "MODE_RECOMMEND")}
 
@@ -71,7 +72,7 @@ def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -
         raise BusError("no CAN bus: this kernel has no vcan0; start the bench with "
                        "`python -m hil run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
     assert spec is not None
-    return spec.open(can_filters=node_filters(name))
+    return spec.open(can_filters=node_filters(name), node=DBC_NODE[name])
 
 
 def _send(bus: can.BusABC, frames) -> None:
@@ -275,7 +276,7 @@ def _tell_driver(t: float, faults: int, reason: int) -> None:
 
 
 def main(role: str, args) -> int:
-    from hil.cli import design_or_exit, fail, route_or_exit, vehicle_or_exit
+    from hil.cli import design_or_exit, fail, key_or_exit, route_or_exit, vehicle_or_exit
     from hil.codec import Codec
     from hil.config import ConfigError, load_driver_script
 
@@ -286,38 +287,43 @@ def main(role: str, args) -> int:
         print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
     codec = Codec()
     cfg = vehicle_or_exit(args.vehicle)
-    try:
+    try:                            # the configuration first, then the key, then the node
         if role == "plant":
-            from hil.nodes import PlantNode
-
             route = route_or_exit(args.route)
-            node = PlantNode(cfg, route, args.seed, codec, inject=_injector(args, "plant"))
-            if args.duration is not None:
-                node.n = min(node.n, int(round(args.duration / node.dt)))
         elif role == "ecu":
-            from hil.nodes import EcuNode
             from hil.sil import ecu_params
 
             p = ecu_params(cfg, args.mode, controller=args.controller,
                            gains_file=Path(args.gains) if args.gains else None,
                            opts=design_or_exit(args.design))
-            node = EcuNode(p, codec, lockstep=args.pace == "lockstep",
-                           fixed_point=args.fixed_point)
         else:
-            from hil.sil import app_node
-
             script = load_driver_script(args.script) if args.script else None
             if args.policy == "script" and script is None:
                 fail("app: --policy script needs --script FILE")
-            node = app_node(codec, args.mode, cfg.sim.plant_dt_s, args.policy, script,
-                            args.reaction_s)
-            node.inject = _injector(args, "app")
-            if not getattr(args, "quiet", False):
-                node.on_request = lambda t, kind, mode: print(
-                    f"app: t={t:7.2f} s  {kind} {mode}", file=sys.stderr, flush=True)
-                node.on_faults = _tell_driver
     except ConfigError as exc:
         fail(str(exc))
+    key = key_or_exit(args.key_file, required=True)
+    if role == "plant":
+        from hil.nodes import PlantNode
+
+        node = PlantNode(cfg, route, args.seed, codec, inject=_injector(args, "plant"), key=key)
+        if args.duration is not None:
+            node.n = min(node.n, int(round(args.duration / node.dt)))
+    elif role == "ecu":
+        from hil.nodes import EcuNode
+
+        node = EcuNode(p, codec, lockstep=args.pace == "lockstep",
+                       fixed_point=args.fixed_point, key=key)
+    else:
+        from hil.sil import app_node
+
+        node = app_node(codec, args.mode, cfg.sim.plant_dt_s, args.policy, script,
+                        args.reaction_s, key=key)
+        node.inject = _injector(args, "app")
+        if not getattr(args, "quiet", False):
+            node.on_request = lambda t, kind, mode: print(
+                f"app: t={t:7.2f} s  {kind} {mode}", file=sys.stderr, flush=True)
+            node.on_faults = _tell_driver
     try:
         bus = open_node_bus(role, getattr(args, "interface", None),
                             getattr(args, "channel", None))

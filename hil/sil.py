@@ -15,7 +15,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from firmware import params as fp
-from hil import verdict
+from hil import secoc, verdict
 from hil.codec import Codec
 from hil.config import CONTROLLERS, RUN_MODES as MODES, VehicleConfig
 from calib.ecu_params import build, with_controllers
@@ -56,14 +56,15 @@ def ecu_params(cfg: VehicleConfig, mode: str, *, controller: Optional[str] = Non
 
 
 def app_node(codec: Codec, mode: str, dt: float, policy: Optional[str] = None,
-             script: Optional[list] = None, reaction_s: float = REACTION_S) -> AppNode:
+             script: Optional[list] = None, reaction_s: float = REACTION_S,
+             key: Optional[bytes] = None) -> AppNode:
     """The driver of a run: ``auto`` mode accepts recommendations; a fixed mode chooses it and
     refuses the rest; ``policy`` overrides (refuse, script, interactive)."""
     if policy is None:
         policy = "auto" if mode == "auto" else "fixed"
     fixed = MODES.get(mode, fp.MODE_PASSIVE)
     return AppNode(codec, policy, mode=fixed, reaction_ticks=int(round(reaction_s / dt)),
-                   script=script, dt=dt)
+                   script=script, dt=dt, key=key)
 
 
 def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
@@ -73,19 +74,22 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         progress: Optional[Callable[[int, int], None]] = None,
         on_frame: Optional[Callable[[int, bytes], None]] = None,
         duration_s: Optional[float] = None, fixed_point: bool = False,
-        fx_record: Optional[list] = None) -> tuple[dict, SilTrace]:
+        fx_record: Optional[list] = None, key: Optional[bytes] = None
+        ) -> tuple[dict, SilTrace]:
     """Run the SIL. Returns (report dict, per-tick trace). ``on_frame(id, data)`` sees every
     frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
-    control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs)."""
+    control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs); ``key``: the
+    SecOC key (default: a new one for this run)."""
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
     codec = Codec()
-    plant = PlantNode(cfg, route, seed, codec, noise_step=noise_step)
+    key = key or secoc.new_key()
+    plant = PlantNode(cfg, route, seed, codec, noise_step=noise_step, key=key)
     if duration_s is not None:
         plant.n = min(plant.n, int(round(duration_s / plant.dt)))
     ecu_node = EcuNode(p, codec, lockstep=True, fixed_point=fixed_point,
-                       record=fx_record is not None)
-    app = app_node(codec, mode, p.dt_s, policy, script)
+                       record=fx_record is not None, key=key)
+    app = app_node(codec, mode, p.dt_s, policy, script, key=key)
     bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
     if fx_record is not None:
         fx_record.extend(ecu_node.state.path.log)
@@ -126,6 +130,7 @@ def build_report(cfg, route, mode, controller, seed, trace: SilTrace, plant: dic
     report["plant_missed_cmds"] = plant["missed_cmds"]
     report["plant_bad_cmd_frames"] = plant["bad_cmd_frames"]
     report["plant_stale_cmd_frames"] = plant["stale_cmd_frames"]
+    report["plant_auth_failures"] = plant["auth_failures"]
     return report
 
 

@@ -14,6 +14,8 @@ exit. ``--out`` is locked for the run.
 from __future__ import annotations
 
 import json
+import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -26,7 +28,8 @@ from typing import Optional
 import numpy as np
 
 from firmware.params import GRADE_NAMES, MODE_NAMES
-from hil import sil, verdict
+from hil import secoc, sil, verdict
+from hil.auth import SECRET_ENV
 from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, close_bus, die_with_parent,
                      resolve, rt_of)
 from hil.buslog import BusLogFile
@@ -47,14 +50,14 @@ class NodeFailure(RuntimeError):
 class Node:
     """A node process started by the supervisor (stdout: READY line; stderr: DIR/<name>.log)."""
 
-    def __init__(self, name: str, argv: list[str], out: Path):
+    def __init__(self, name: str, argv: list[str], out: Path, env: Optional[dict] = None):
         self.name = name
         self.errlog = out / f"{name}.log"
         self._err = open(self.errlog, "wb")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "hil", name, *argv], stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE, stderr=self._err, start_new_session=True,
-            preexec_fn=die_with_parent)
+            preexec_fn=die_with_parent, env=env)
         self.ready = threading.Event()
         self.lines: deque = deque(maxlen=50)
         threading.Thread(target=self._read, daemon=True).start()
@@ -267,8 +270,10 @@ def _check_inputs(args):
     return cfg, route
 
 
-def _node_argvs(args, spec: BusSpec, out: Path, rt: int) -> dict[str, list[str]]:
-    common = ["-i", spec.interface, "-c", spec.channel, "--out", str(out), "--pace", args.pace]
+def _node_argvs(args, spec: BusSpec, out: Path, rt: int, key_file: Path
+                ) -> dict[str, list[str]]:
+    common = ["-i", spec.interface, "-c", spec.channel, "--out", str(out), "--pace", args.pace,
+              "--key-file", str(key_file)]
     if args.vehicle:
         common += ["--vehicle", args.vehicle]
     ecu = [*common, "--mode", args.mode, "--rt-priority", str(rt_of(rt, "ecu"))]
@@ -301,8 +306,10 @@ def run(args) -> int:
     from hil.figures import FIGURES
 
     stale = [f"{n}{x}" for n in NODES for x in (".json", ".npz", ".log")]
-    for name in (*stale, "report.json", "report.md", *FIGURES):
+    for name in (*stale, "hub.log", "report.json", "report.md", secoc.KEY_FILE_NAME,
+                 *FIGURES):
         (out / name).unlink(missing_ok=True)   # a failed run leaves no old report behind
+    key_file = _key_file(args, out)
     dt = cfg.sim.plant_dt_s
     n = int(round(route.duration_s / dt))
     if args.duration is not None:
@@ -321,8 +328,14 @@ def run(args) -> int:
         rt = getattr(args, "rt_priority", None)
         if rt is None:
             rt = RT_PRIORITY if args.pace == "realtime" else 0
+        env = {k: v for k, v in os.environ.items() if k != SECRET_ENV}
         if needs_hub:
-            hub = Hub(rt_priority=rt_of(rt, "hub")).start()
+            # the run's secret: to the hub and the nodes in their environment, never argv
+            env[SECRET_ENV] = secrets.token_hex(16)
+            hub = Hub(rt_priority=rt_of(rt, "hub"), secret=env[SECRET_ENV],
+                      allow_external_tx=getattr(args, "allow_external_tx", False),
+                      allow_unknown_ids=bool(getattr(args, "inject", None)),
+                      log_path=out / "hub.log").start()
             spec = BusSpec("remote", hub.url)
         assert spec is not None
         say(f"bus: {spec.interface} {spec.channel}  (watch: python -m can.viewer -i "
@@ -331,12 +344,12 @@ def run(args) -> int:
         logger = Logger(log_bus, BusLogFile(out / "bus.log"), args.pace == "lockstep", dt,
                         Codec())
         logger.start()
-        argvs = _node_argvs(args, spec, out, rt)
+        argvs = _node_argvs(args, spec, out, rt, key_file)
         for name in ("ecu", "app"):
-            nodes[name] = Node(name, argvs[name], out)
+            nodes[name] = Node(name, argvs[name], out, env)
         for name in ("ecu", "app"):
             nodes[name].wait_ready(READY_TIMEOUT_S)
-        nodes["plant"] = Node("plant", argvs["plant"], out)
+        nodes["plant"] = Node("plant", argvs["plant"], out, env)
         nodes["plant"].wait_ready(READY_TIMEOUT_S)
         _watch(nodes, hub, logger, n, dt, route, args)
         for name in ("ecu", "app"):
@@ -371,6 +384,22 @@ def run(args) -> int:
         return code
     return _report(out, cfg, route, args, n, dt, summaries, logger, time.monotonic() - t_start,
                    spec)
+
+
+def _key_file(args, out: Path) -> Path:
+    """The run's SecOC key file: ``--key-file`` (checked), else a new one, DIR/secoc.key
+    (mode 0600; it stays, so the log can be verified afterwards)."""
+    from hil.cli import fail, key_or_exit
+
+    if getattr(args, "key_file", None):
+        key_or_exit(args.key_file)
+        return Path(args.key_file).resolve()
+    path = out / secoc.KEY_FILE_NAME
+    try:
+        secoc.write_key(path)
+    except OSError as exc:
+        fail(f"--out {out}: cannot write the key file: {exc.strerror or exc}")
+    return path.resolve()
 
 
 def _shut_down(nodes: dict, logger: Optional[Logger], log_bus, hub: Optional[Hub]) -> None:

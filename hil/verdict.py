@@ -10,8 +10,9 @@ The checks of a drive (``hil sim``, ``hil run``; :func:`run_checks`):
   ``hil sim``) are the frames the nodes sent, message by message;
 * ``app.answers``: the app answered every MODE_RECOMMEND (lockstep);
 * without injected faults, in lockstep: no frame fault, no tick with a fault bit (fail-safe),
-  no tick of the plant's passive fallback, no tick stepped without a command, no invalid or
-  stale command at the plant (in realtime: no invalid one); in realtime
+  no tick of the plant's passive fallback, no tick stepped without a command, no invalid,
+  stale or unauthentic (SecOC) command at the plant (in realtime: no invalid or unauthentic
+  one); in realtime
   the same under limits (:class:`Limits`, options ``--max-missed-ratio``/``--max-lost-ratio``);
 * ``mode_switches`` in auto mode: at most the route's grade changes + 1.
 """
@@ -109,10 +110,12 @@ def run_checks(report: dict, *, expected_ticks: int, dt_s: float, ticks: dict[st
                     check("plant_missed_cmds", report["plant_missed_cmds"], "==", 0),
                     check("plant_bad_cmd_frames", report["plant_bad_cmd_frames"], "==", 0),
                     check("plant_stale_cmd_frames", report["plant_stale_cmd_frames"], "==",
-                          0)]
+                          0),
+                    check("plant_auth_failures", report["plant_auth_failures"], "==", 0)]
         else:
             n = max(1, expected_ticks)
             out.append(check("plant_bad_cmd_frames", report["plant_bad_cmd_frames"], "==", 0))
+            out.append(check("plant_auth_failures", report["plant_auth_failures"], "==", 0))
             out += [check("missed_deadline_ratio", missed_deadlines / n, "<=",
                           limits.max_missed_ratio),
                     check("lost_frame_ratio", lost_sensor_frames / n, "<=",

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from firmware import safety
+from hil import secoc
 from hil.codec import DBC_PATH, Codec, declared_raw_range, raw_range, to_raw
 from hil.road import MAX_SPEED_MPS
 from tools.busload import bus_load
@@ -29,7 +30,11 @@ def test_dbc_loads_in_cantools_and_canmatrix_and_follows_conventions():
             assert s.name == s.name.upper() and s.byte_order == "little_endian"
         if m.name in SAFETY_RELEVANT:
             names = [s.name for s in m.signals]
-            assert names[-2:] == ["COUNTER", "CHECKSUM"], m.name
+            if m.name in secoc.SECURED:     # E2E, then the SecOC trailer (byte-aligned)
+                assert names[-4:] == ["COUNTER", "CHECKSUM", "FRESHNESS", "MAC"], m.name
+                secoc.layout(CODEC, m.name)
+            else:
+                assert names[-2:] == ["COUNTER", "CHECKSUM"], m.name
             sig = {s.name: s for s in m.signals}
             assert sig["COUNTER"].length == 4 and sig["CHECKSUM"].length == 8
     # truth lives in its own message, which the ECU does not receive

@@ -37,14 +37,15 @@ def without_bench(report: dict) -> dict:
 def test_full_road_section_lockstep_equals_sil(tmp_path):
     """The acceptance run: full_road_section, auto, seed 1, lockstep over the hub."""
     proc = hil_run(tmp_path / "hil", "--route", "full_road_section", "--mode", "auto",
-                   "--seed", "1", "--pace", "lockstep")
+                   "--seed", "1", "--pace", "lockstep", "--key-file",
+                   str(golden.key_file(tmp_path)))     # the golden runs' SecOC key
     assert proc.returncode == 0, proc.stderr[-2000:]
     hil_rep = json.loads(proc.stdout)
     # SIL = HIL: the same ECU trace hash, the same report and the same log, byte for byte, as
     # the SIL's golden trace of this scenario pins them (tests/test_golden.py runs the SIL)
     sil_gold = golden.load()["full_road_section_auto"]
     assert sil_gold["command"].startswith("python -m hil sim --route full_road_section "
-                                          "--mode auto --seed 1 --out")
+                                          "--mode auto --seed 1 --key-file KEY --out")
     assert hil_rep["trace_sha256"] == sil_gold["trace_sha256"]
     got = {k: v for k, v in without_bench(hil_rep).items()
            if k not in golden.IGNORED_REPORT_KEYS}
@@ -253,14 +254,15 @@ def test_a_second_run_on_the_same_out_refuses(tmp_path):
     assert sup.returncode == 130
 
 
-def test_a_node_without_a_bus_says_so():
+def test_a_node_without_a_bus_says_so(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("CAN_INTERFACE", "CAN_CHANNEL")}
-    proc = subprocess.run([sys.executable, "-m", "hil", "ecu"], capture_output=True, text=True,
-                          cwd=ROOT, timeout=120, env=env)
+    key = ["--key-file", str(golden.key_file(tmp_path))]
+    proc = subprocess.run([sys.executable, "-m", "hil", "ecu", *key], capture_output=True,
+                          text=True, cwd=ROOT, timeout=120, env=env)
     assert proc.returncode == 3
     assert "no CAN bus" in proc.stderr
     proc = subprocess.run([sys.executable, "-m", "hil", "plant", "-i", "remote", "-c",
-                           "ws://127.0.0.1:9/"], capture_output=True, text=True, cwd=ROOT,
+                           "ws://127.0.0.1:9/", *key], capture_output=True, text=True, cwd=ROOT,
                           timeout=120, env=env)
     assert proc.returncode == 3
     assert "cannot reach the bus" in proc.stderr

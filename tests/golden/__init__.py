@@ -20,6 +20,24 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 GOLDEN_FILE = HERE / "golden.json"
 ROUTES = HERE / "routes"
+# the SecOC key of the golden runs (a test key, public: the bus.log bytes depend on it; a
+# copy with mode 0600 serves as --key-file, see README.md)
+KEY_FILE = HERE / "secoc.key"
+
+
+def secoc_key() -> bytes:
+    return bytes.fromhex(KEY_FILE.read_text().strip())
+
+
+def key_file(directory: Path) -> Path:
+    """A copy of the golden key as a key file ``hil`` accepts (mode 0600) in ``directory``."""
+    import os
+
+    path = Path(directory) / "golden_secoc.key"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(KEY_FILE.read_text())
+    return path
 # report keys that are not behaviour: the vehicle file's path as given
 IGNORED_REPORT_KEYS = ("vehicle",)
 
@@ -44,7 +62,7 @@ class Scenario:
             parts.append("--fixed-point")
         if self.duration_s is not None:
             parts.append(f"--duration {self.duration_s:g}")
-        return " ".join(parts + ["--out DIR"])
+        return " ".join(parts + ["--key-file KEY", "--out DIR"])
 
 
 SCENARIOS = (
@@ -77,7 +95,7 @@ def run(s: Scenario, trace: Optional[list] = None) -> dict:
         clock = LockstepClock(cfg.sim.plant_dt_s)
         try:
             report, tr = sil.run(cfg, route, s.mode, s.seed, fixed_point=s.fixed_point,
-                                 duration_s=s.duration_s,
+                                 duration_s=s.duration_s, key=secoc_key(),
                                  on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)))
         finally:
             log.close()

@@ -1,0 +1,43 @@
+"""Who may send on the bench's hub: a per-run secret, and the DBC's transmitters.
+
+The supervisor (``hil run``) makes a secret per run and hands it to the hub and to its nodes
+in the environment (``HIL_HUB_SECRET``, hex), never on a command line. A node authenticates in
+its bus request with ``hil_node`` (its DBC node name) and ``hil_token`` (HMAC-SHA256 of that
+name under the secret); the hub then relays only the messages the DBC names that node the
+transmitter of (``BO_ ... <sender>``; the plant also speaks for the simulation's ``SIM``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+from typing import Optional
+
+SECRET_ENV = "HIL_HUB_SECRET"
+# which DBC transmitters a bench node may speak for (the plant also sends the simulation's)
+NODE_SENDERS = {"PLANT": ("PLANT", "SIM"), "ECU": ("ECU",), "APP": ("APP",)}
+
+
+def node_token(secret: bytes, node: str) -> str:
+    return hmac.new(secret, b"hil.hub node " + node.encode(), hashlib.sha256).hexdigest()
+
+
+def credentials(node: Optional[str]) -> dict:
+    """The bus-request fields that make a hub client ``node`` (none without the secret)."""
+    secret = os.environ.get(SECRET_ENV)
+    if node is None or not secret:
+        return {}
+    return {"hil_node": node, "hil_token": node_token(bytes.fromhex(secret), node)}
+
+
+def dbc_senders(path=None) -> dict[str, frozenset]:
+    """node -> the frame IDs the DBC names it (or the simulation, for the plant) the
+    transmitter of."""
+    import cantools
+
+    from hil.codec import DBC_PATH
+
+    db = cantools.database.load_file(str(path or DBC_PATH), strict=False)
+    return {node: frozenset(m.frame_id for m in db.messages if set(m.senders) & set(names))
+            for node, names in NODE_SENDERS.items()}
