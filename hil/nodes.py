@@ -389,6 +389,9 @@ class EcuNode:
                 self.seq = safety.counter_of(self.sensors_spec, data) & 0x3   # (as sent)
             self._note(faults, "PLANT_SENSORS")
             return []
+        if fid == ID["DRIVER_REQUEST"] and self.req_auth is not None and self._forged(data):
+            self._note(safety.FAULT_AUTH, "DRIVER_REQUEST")   # forged or replayed: not the
+            return []                                         # app's answer, state untouched
         d = self.codec.decode(fid, data, rx, self.k, scaling=False,
                               spec=self.rx_specs.get(fid))
         if fid == ID["VEHICLE_SPEED"]:
@@ -397,12 +400,6 @@ class EcuNode:
             else:
                 self._note(d.faults, "VEHICLE_SPEED")
         elif fid == ID["DRIVER_REQUEST"]:
-            auth, spec = self.req_auth, self.req_spec
-            if auth is not None and len(data) == spec.dlc and \
-                    data[spec.checksum_byte] == safety.checksum_of(spec, data) and \
-                    not auth.verify(data):
-                self._note(safety.FAULT_AUTH, "DRIVER_REQUEST")   # forged or replayed:
-                return []                                         # not the app's answer
             self.awaiting = max(0, self.awaiting - 1)
             if d.ok:
                 s = d.signals
@@ -415,6 +412,13 @@ class EcuNode:
         else:
             self._note(d.faults, f"0x{fid:X}")
         return []
+
+    def _forged(self, data: bytes) -> bool:
+        """A DRIVER_REQUEST with a valid DLC and CHECKSUM whose SecOC MAC or freshness fails
+        (checked before COUNTER, which it then never touches)."""
+        spec = self.req_spec
+        return (len(data) == spec.dlc and data[spec.checksum_byte] == safety.checksum_of(
+            spec, data) and not self.req_auth.verify(data))
 
     def ready(self) -> bool:
         return bool(self.pending) and self.held_cmd is None

@@ -131,6 +131,12 @@ def test_forged_and_replayed_commands_never_reach_the_plant_in_process():
 
 def test_a_forged_driver_request_changes_no_mode():
     plant, ecu_node, app = _bench()
+    early = CODEC.encode("DRIVER_REQUEST", {"REQ_KIND": fp.REQ_CHOOSE,
+                                            "REQ_MODE": fp.MODE_PASSIVE, "REQ_ID": 3,
+                                            "FRESHNESS": 1, "MAC": 7}, 0)
+    ecu_node.on_frame(ID["DRIVER_REQUEST"], early)          # before any genuine one
+    rx = ecu_node.rx[ID["DRIVER_REQUEST"]]
+    assert rx.last_counter == -1 and ecu_node.frame_faults == {"DRIVER_REQUEST:auth": 1}
     plant.n = 1500
     run_in_process(plant, ecu_node, app)
     assert ecu_node.state.modes.active_mode == fp.MODE_COMFORT
@@ -138,7 +144,7 @@ def test_a_forged_driver_request_changes_no_mode():
                                              "REQ_MODE": fp.MODE_PASSIVE, "REQ_ID": 9,
                                              "FRESHNESS": 1, "MAC": 0}, 5)
     assert ecu_node.on_frame(ID["DRIVER_REQUEST"], forged) == []
-    assert ecu_node.frame_faults["DRIVER_REQUEST:auth"] == 1
+    assert ecu_node.frame_faults == {"DRIVER_REQUEST:auth": 2}    # no COUNTER fault either
     plant.n = 2500
     run_in_process(plant, ecu_node, app)
     assert ecu_node.state.modes.active_mode == fp.MODE_COMFORT
@@ -272,6 +278,7 @@ def test_with_external_tx_allowed_secoc_still_rejects_every_forgery(tmp_path):
     # (the attack goes on after the plant has driven its 8 s: not all of it met a receiver)
     assert 500 < rep["plant_auth_failures"] <= sent["cmd"]
     assert 5 <= rep["frame_faults"].get("DRIVER_REQUEST:auth", 0) <= sent["req"]
+    assert set(rep["frame_faults"]) == {"DRIVER_REQUEST:auth"}   # the real ones untouched
     assert rep["plant_bad_cmd_frames"] == 0 and rep["plant_fallback_ticks"] == 0
     mode = np.load(tmp_path / "ecu.npz")["mode"]
     assert np.all(mode[200:] == fp.MODE_COMFORT)
