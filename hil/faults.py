@@ -27,9 +27,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import re
 import subprocess
+import threading
 import sys
 import time
+from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
@@ -48,6 +51,9 @@ UNKNOWN_FRAME_ID = 0x123        # not in the DBC
 OUT_OF_RANGE_SPEED_RAW = 7500   # 75 m/s: inside 13 bits, outside the declared [0, 70] m/s
 INVALID_MODE = 6                # REQ_MODE 6: no such mode
 GAP_TICKS = 700                 # fault-free ticks after each fault (recovery)
+FORGED_DUTY = 0.88              # the forged commands' duty (the issue's attack)
+REPLAY_AGE_TICKS = 100          # a replayed command was recorded this many ticks earlier
+_HUB_DROPS = re.compile(r"\(read-only\): (\d+) frames it may not send dropped")
 
 
 @dataclass(frozen=True)
@@ -89,6 +95,16 @@ FAULTS = (
               "the app sends a new mode request with every answer (10 per second) for 1 s"),
     FaultSpec("invalid_mode", "app", 100, False, safety.FAULT_INVALID_REQUEST,
               f"the app chooses mode {INVALID_MODE} (there are 5)"),
+    FaultSpec("forged_cmd", "plant_rx", 50, True, 0,
+              "an ACTUATOR_CMD forged without the key (valid CRC and COUNTER, 88 % duty) "
+              "reaches the plant before every real one for 50 ms"),
+    FaultSpec("replayed_cmd", "plant_rx", 50, True, 0,
+              f"the ACTUATOR_CMD of {REPLAY_AGE_TICKS} ticks earlier is replayed to the plant "
+              "before every real one for 50 ms"),
+    FaultSpec("external_sender", "bus", 50, True, 0,
+              "an outside bus client sends a forged ACTUATOR_CMD with every tick for 50 ms"),
+    FaultSpec("hub_message", "bus", 1, False, 0,
+              "an outside client sends the hub a malformed frame (DLC 300)"),
     FaultSpec("config_nan", "config", 0, True, 0, "vehicle file with sprung_mass_kg = nan"),
     FaultSpec("config_inf", "config", 0, True, 0,
               "vehicle file with torque_constant_nm_per_a = inf"),
@@ -111,12 +127,15 @@ class Window:
 
 
 def schedule(names: Optional[list[str]] = None, warmup: int = 1500,
-             gap: int = GAP_TICKS) -> list[Window]:
+             gap: int = GAP_TICKS, bus: bool = True) -> list[Window]:
     """The bus faults one after the other: a warm-up (estimator and grade settle), then each
-    fault's window followed by a fault-free gap (recovery)."""
+    fault's window followed by a fault-free gap (recovery). ``bus=False``: without the faults
+    of an outside bus client (in one process there is no bus to attach to; they come last,
+    so the other windows stay where they are)."""
     out, k = [], warmup
     for f in FAULTS:
-        if f.node == "config" or (names is not None and f.name not in names):
+        if f.node == "config" or (names is not None and f.name not in names) or (
+                f.node == "bus" and not bus):
             continue
         out.append(Window(f.name, f.node, k, f.ticks))
         k += f.ticks + gap
@@ -138,6 +157,7 @@ class Injector:
         self.applied: dict[str, list[int]] = {}
         self._speed_raw: Optional[dict] = None
         self._spam_i = 0
+        self._cmds: deque = deque(maxlen=REPLAY_AGE_TICKS)   # the last real commands
 
     @classmethod
     def from_file(cls, path: str, node: str, lockstep: bool = True) -> "Injector":
@@ -217,10 +237,24 @@ class Injector:
 
     def drop_rx(self, plant, fid: int) -> bool:
         w = self._active(plant.k, "plant_rx")
-        if w is not None and fid == ID["ACTUATOR_CMD"]:
+        if w is not None and w.name == "actuator_cmd_loss" and fid == ID["ACTUATOR_CMD"]:
             self._mark(w.name, plant.k)
             return True
         return False
+
+    def rx_extra(self, plant, data: bytes) -> list[bytes]:
+        """Commands an attacker slips in before the real one (``data``): forged without the
+        key, or replayed from ``REPLAY_AGE_TICKS`` earlier. Records the real ones."""
+        self._cmds.append(data)
+        w = self._active(plant.k, "plant_rx")
+        if w is None or w.name not in ("forged_cmd", "replayed_cmd"):
+            return []
+        self._mark(w.name, plant.k)
+        if w.name == "replayed_cmd":
+            return [self._cmds[0]]
+        return [forged_command(plant.codec, (plant.cmd_rx.last_counter + 1) & 0xF,
+                               (plant.tx.counters.get("PLANT_SENSORS", 0) - 1) & 0x3,
+                               plant.k)]
 
     # -- app: before it answers a MODE_RECOMMEND ------------------------------------------------
 
@@ -238,6 +272,15 @@ class Injector:
         elif w.name == "invalid_mode" and w.name not in self.applied:
             app._send(fp.REQ_CHOOSE, INVALID_MODE)
             self._mark(w.name, app.t)
+
+
+def forged_command(codec, counter: int, seq: int, salt: int) -> bytes:
+    """An ACTUATOR_CMD as an attacker with the DBC but without the key builds it: 88 % duty,
+    bridge enabled, the right SENSOR_SEQ, the COUNTER the receiver expects, a valid CRC, and
+    MAC and freshness bytes that are a guess."""
+    return codec.encode("ACTUATOR_CMD", {
+        "DUTY": FORGED_DUTY, "REGEN": 0, "ENABLE": 1, "SENSOR_SEQ": seq,
+        "FRESHNESS": salt & 0xFF, "MAC": (salt * 2654435761) & 0xFFFFFF}, counter)
 
 
 def _name_of(codec, fid: int) -> str:
@@ -273,8 +316,10 @@ class Result:
 
 
 def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
-          faults_seen: list, ticks_run: int, crash: Optional[str], mode: int) -> list[Result]:
-    """Per bus fault: read the ECU's and the plant's per-tick records around its window."""
+          faults_seen: list, ticks_run: int, crash: Optional[str], mode: int,
+          hub_log: str = "") -> list[Result]:
+    """Per bus fault: read the ECU's and the plant's per-tick records around its window (and
+    the hub's log, for an outside client's frames)."""
     faults = np.asarray(ecu_tr["faults"], dtype=np.int64)
     enable = np.asarray(ecu_tr["enable"], dtype=bool)
     modes = np.asarray(ecu_tr["mode"])
@@ -292,6 +337,9 @@ def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
             continue
         first, last = a[0], a[1]
         seg = slice(first, end)
+        if w.name in ATTACKS:
+            out.append(_judge_attack(w, a, seg, plant_tr, enable, fallback, crashed, hub_log))
+            continue
         if spec.node == "plant_rx":
             hit = np.flatnonzero(fallback[seg])
             bad = fallback[seg]
@@ -319,6 +367,102 @@ def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
             fault_bits=bits, failsafe_ticks=int(np.count_nonzero(~enable[seg])),
             mode_kept=kept, note=NOTES.get(w.name, "")))
     return out
+
+
+ATTACKS = ("forged_cmd", "replayed_cmd", "external_sender", "hub_message")
+
+
+def _judge_attack(w: Window, a: list, seg: slice, plant_tr: dict, enable, fallback,
+                  crashed: bool, hub_log: str) -> Result:
+    """An attack is detected when every frame of it was stopped (dropped by the hub, or
+    rejected by the plant's SecOC check) and recovered when it had no effect at all: no
+    passive fallback and no fail-safe tick in its window. A malformed hub message is
+    detected when the hub disconnected its sender, recovered when the run went on."""
+    sent = a[2]
+    if w.name == "hub_message":
+        hit = "disconnecting" in hub_log and "dlc 300" in hub_log
+        return Result(w.name, hit, 0 if hit else None, hit and not crashed, crashed, False,
+                      note="the hub disconnected the client" if hit else "not in hub.log")
+    rejected = np.asarray(plant_tr.get("rejected", np.zeros(0)))
+    stopped = int(rejected[seg].sum()) if w.name != "external_sender" else int(
+        rejected[seg.start:].sum())
+    note = f"{stopped} of {sent} rejected by the plant's SecOC check"
+    if w.name == "external_sender":
+        dropped = sum(int(x) for x in _HUB_DROPS.findall(hub_log))
+        stopped += dropped
+        note = f"{dropped} of {sent} dropped at the hub (read-only client), " + note
+    hit = sent > 0 and stopped >= sent
+    clean = not np.any(fallback[seg]) and bool(np.all(enable[seg]))
+    return Result(w.name, hit, 0 if hit else None, hit and clean, crashed, True,
+                  recovery_ticks=0 if hit and clean else None, fault_bits=[],
+                  failsafe_ticks=int(np.count_nonzero(~enable[seg])), note=note)
+
+
+def _attacker(windows: list[Window], spec, marks: dict, stop) -> None:
+    """The campaign's outside bus client: read-only (no credentials), it counts the plant's
+    ticks from the bus and, in its windows, sends a forged ACTUATOR_CMD with every tick
+    (``external_sender``) or a malformed message to the hub (``hub_message``)."""
+    import can
+
+    from hil.codec import Codec
+
+    codec = Codec()
+    mine = [w for w in windows if w.node == "bus"]
+    if spec.interface != "remote":
+        mine = [w for w in mine if w.name != "hub_message"]
+    if not mine:
+        return
+    ticks_ids = [{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
+                 for n in ("PLANT_SENSORS", "SIM_TICK")]
+    bus = spec.open(can_filters=ticks_ids)
+    k = 0
+    try:
+        while not stop.is_set() and mine:
+            msg = bus.recv(0.2)
+            if msg is None:
+                continue
+            k += 1
+            w = mine[0]
+            if k < w.start:
+                continue
+            if k >= w.start + w.ticks:
+                mine.pop(0)
+                continue
+            a = marks.setdefault(w.name, [k, k, 0])
+            a[1], a[2] = k, a[2] + 1
+            if w.name == "external_sender":
+                bus.send(can.Message(arbitration_id=ID["ACTUATOR_CMD"], is_extended_id=False,
+                                     data=forged_command(codec, k & 0xF, k & 0x3, k)))
+            else:
+                _malformed_hub_message(spec.channel)
+                mine.pop(0)
+    finally:
+        from hil.bus import close_bus
+
+        close_bus(bus)
+
+
+def _malformed_hub_message(url: str) -> None:
+    """A client that opens a WebSocket to the hub and sends a frame with DLC 300."""
+    import socket
+    from urllib.parse import urlparse
+
+    from hil.hub import _TEXT, ws_frame
+
+    u = urlparse(url)
+    with socket.create_connection((u.hostname, u.port), timeout=2.0) as sock:
+        sock.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: "
+                     b"Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                     b"Sec-WebSocket-Protocol: can.json.v1\r\n\r\n")
+        for event in ({"type": "bus_request", "payload": {"config": {}}},
+                      {"type": "message", "payload": {"arbitration_id": ID["ACTUATOR_CMD"],
+                                                      "dlc": 300, "data": [1]}}):
+            sock.sendall(ws_frame(_TEXT, json.dumps(event).encode()))
+        try:
+            while sock.recv(4096):
+                pass
+        except OSError:
+            pass
 
 
 def config_faults(out: Path, names: Optional[list[str]] = None) -> list[Result]:
@@ -421,8 +565,20 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
         vehicle=None,
         driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
         inject=str(plan), key_file=None)
+    marks: dict = {}
+    stop = threading.Event()
+    threads: list = []
+
+    def attach(spec):                 # the outside client, once the bus is up
+        t = threading.Thread(target=_attacker, args=(windows, spec, marks, stop), daemon=True)
+        t.start()
+        threads.append(t)
+
     with contextlib.redirect_stdout(sys.stderr):
-        code = supervisor.run(args)
+        code = supervisor.run(args, on_bus=attach)
+    stop.set()
+    for t in threads:
+        t.join(5.0)
     crash = None if code == 0 else f"hil run exited with code {code}"
     for name in supervisor.NODES:
         log = out / f"{name}.log"
@@ -435,28 +591,43 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
         return {"ecu": {"faults": [], "enable": [], "mode": []}, "plant": {"fallback": []},
                 "applied": {}, "faults_seen": [], "ticks": 0,
                 "crash": crash or f"no node records: {exc}"}
+    hub_log = out / "hub.log"
     return {"ecu": ecu_tr, "plant": plant_tr,
-            "applied": {**sums["plant"].get("injected", {}), **sums["app"].get("injected", {})},
+            "applied": {**sums["plant"].get("injected", {}), **sums["app"].get("injected", {}),
+                        **marks},
             "faults_seen": [tuple(e) for e in sums["app"]["faults_seen"]],
-            "ticks": len(ecu_tr["faults"]), "crash": crash}
+            "ticks": len(ecu_tr["faults"]), "crash": crash,
+            "hub_log": hub_log.read_text(errors="replace") if hub_log.exists() else ""}
 
 
 def campaign(out: Path, *, in_process: bool = False, seed: int = 1,
              names: Optional[list[str]] = None, interface: Optional[str] = None,
              channel: Optional[str] = None) -> list[Result]:
     out.mkdir(parents=True, exist_ok=True)
-    windows = schedule(names)
+    windows = schedule(names, bus=not in_process)
+    if not in_process and not _on_hub(interface, channel):      # vcan0: no hub to attack
+        windows = [w for w in windows if w.name != "hub_message"]
     results: list[Result] = []
     if windows:
         run = (run_in_process(windows, out, seed) if in_process
                else run_over_bus(windows, out, seed, interface, channel))
         results += judge(windows, run["ecu"], run["plant"], run["applied"],
                          run["faults_seen"], run["ticks"], run["crash"],
-                         fp.MODE_COMFORT)
+                         fp.MODE_COMFORT, run.get("hub_log", ""))
         if run["crash"]:
             print(f"faults: {run['crash']}", file=sys.stderr, flush=True)
     results += config_faults(out / "config", names)
     return results
+
+
+def _on_hub(interface: Optional[str], channel: Optional[str]) -> bool:
+    from hil.bus import BusError, resolve
+
+    try:
+        spec, needs_hub = resolve(interface, channel)
+    except BusError:
+        return True                   # (the run itself says what is wrong)
+    return needs_hub or spec.interface == "remote"
 
 
 def passed(results: list[Result]) -> bool:
@@ -510,7 +681,7 @@ def _table(results: list[Result]) -> None:
 
     for r in results:
         node = BY_NAME[r.fault].node
-        bits = ", ".join(r.fault_bits or []) or {
+        bits = r.note if r.fault in ATTACKS else ", ".join(r.fault_bits or []) or {
             "config": "refused: exit 2, one-line error" if r.detected else r.note,
             "plant_rx": "(plant: passive fallback)"}.get(node, "")
         t.add_row(r.fault, cell(r.safety_relevant), cell(r.detected, True),

@@ -55,9 +55,11 @@ OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
 UNKNOWN_GRADE_ON_BUS = 7
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 
-_DUTY, _FALLBACK = len(OBS), len(OBS) + 1   # PlantNode.obs columns after plant.OBS
+# PlantNode.obs columns after plant.OBS: the duty applied, the passive fallback, and the
+# commands rejected by SecOC in that tick
+_DUTY, _FALLBACK, _REJECTED = len(OBS), len(OBS) + 1, len(OBS) + 2
 TRACE = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "stored", "drawn",
-         "duty", "fallback")                   # the plant's trace columns
+         "duty", "fallback", "rejected")       # the plant's trace columns
 # What the trace hash takes per tick, in this order: the ECU's inputs, then its outputs, each
 # packed little-endian with its struct code. The two "reserved" fields are always 0; they stay
 # so that every recorded trace hash (tests/golden, earlier reports) stays valid.
@@ -167,6 +169,8 @@ class PlantNode:
             ID["ACTUATOR_CMD"])
         self.cmd_auth_wire = copy.deepcopy(self.cmd_auth)
         self.auth_failures = 0              # ACTUATOR_CMD frames with a bad MAC or freshness
+        self.auth_failures_booked = 0       # ... of them in the per-tick record so far
+        self.in_extra = False
         # the frames on_frame does nothing with (a bus harness may skip them)
         self.ignore = frozenset(ID.values()) - {ID["ACTUATOR_CMD"]}
         self.k = 0
@@ -180,7 +184,7 @@ class PlantNode:
         self.fallback_ticks = 0             # steps in the passive fallback
         # per tick: the active corner (plant.OBS, written by one compiled call), then the
         # command applied and whether the passive fallback acted
-        self.obs = np.zeros((self.n, len(OBS) + 2))
+        self.obs = np.zeros((self.n, len(OBS) + 3))
         self.arrays = {k: np.zeros(self.n) for k in ("p_ba", "p_sws", "p_dtd", "p_vrel")}
 
     @property
@@ -217,7 +221,14 @@ class PlantNode:
         are counted (``bad_cmd_frames``, ``stale_cmd_frames``) and never stepped on."""
         if fid == ID["ACTUATOR_CMD"]:
             on_wire = False
-            if self.inject is not None:
+            if self.inject is not None and not self.in_extra:
+                # the campaign's forged and replayed commands: received as any frame is
+                self.in_extra = True
+                try:
+                    for extra in self.inject.rx_extra(self, data):
+                        self.on_frame(fid, extra)
+                finally:
+                    self.in_extra = False
                 # the fault campaign loses commands in the plant's receiver after the ECU sent
                 # them: the ECU's tick is over all the same (lockstep), as a receiver that
                 # sees every frame on the wire judges it (the plant's own receiver rejects the
@@ -287,6 +298,8 @@ class PlantNode:
         a.observe_into(self.obs, k)
         self.obs[k, _DUTY] = duty / 32768.0 if enable else 0.0
         self.obs[k, _FALLBACK] = fallback
+        self.obs[k, _REJECTED] = self.auth_failures - self.auth_failures_booked
+        self.auth_failures_booked = self.auth_failures
         self.k += 1
         self.cmd_fresh = False
 
@@ -301,7 +314,8 @@ class PlantNode:
 
     def trace(self) -> dict:
         k = self.k
-        col = {**{name: i for i, name in enumerate(OBS)}, "duty": _DUTY, "fallback": _FALLBACK}
+        col = {**{name: i for i, name in enumerate(OBS)}, "duty": _DUTY, "fallback": _FALLBACK,
+               "rejected": _REJECTED}
         out = {name: (self.arrays[name][:k] if name in self.arrays
                       else self.obs[:k, col[name]].copy()) for name in TRACE}
         out.update(zf=self.zf[1:k + 1], segment=self.timeline.segment[:k],

@@ -298,7 +298,9 @@ def _node_argvs(args, spec: BusSpec, out: Path, rt: int, key_file: Path
     return {"ecu": ecu, "app": app, "plant": plant}
 
 
-def run(args) -> int:
+def run(args, on_bus=None) -> int:
+    """``on_bus(spec)``: called once the bus is up, before the nodes start (the fault
+    campaign attaches its outside client there)."""
     from hil.cli import lock_out
 
     cfg, route = _check_inputs(args)
@@ -344,6 +346,8 @@ def run(args) -> int:
         logger = Logger(log_bus, BusLogFile(out / "bus.log"), args.pace == "lockstep", dt,
                         Codec())
         logger.start()
+        if on_bus is not None:
+            on_bus(spec)
         argvs = _node_argvs(args, spec, out, rt, key_file)
         for name in ("ecu", "app"):
             nodes[name] = Node(name, argvs[name], out, env)
