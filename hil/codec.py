@@ -11,6 +11,8 @@ raises on bad input.
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from pathlib import Path
 from typing import Callable, Mapping, NamedTuple, Optional
@@ -162,10 +164,12 @@ class Codec:
         word = _pack_word(plan.pack, [get(sig, 0) for sig in plan.names])
         return safety.seal_word(plan.spec, word, plan.length, counter)
 
-    def packer(self, name: str, signals: tuple[str, ...]) -> Callable[..., bytes]:
+    def packer(self, name: str, signals: tuple[str, ...],
+               checksum: bool = True) -> Callable[..., bytes]:
         """``encode_raw`` for a fixed list of signals given by position (the per-tick frames:
         no dictionary to build and search): ``packer(name, ("A", "B"))((a, b), counter)``
-        is ``encode_raw(name, {"A": a, "B": b}, counter)``."""
+        is ``encode_raw(name, {"A": a, "B": b}, counter)``. ``checksum=False`` leaves the
+        CHECKSUM byte 0 for a later step to write (``hil.secoc.Sender.protect`` does)."""
         plan = self._plans[name]
         packable = {sig.name for sig in self.message(name).signals} - {"COUNTER", "CHECKSUM"}
         unknown = set(signals) - packable
@@ -173,6 +177,8 @@ class Codec:
             raise ValueError(f"{name} has no signal(s) {sorted(unknown)} to pack")
         fields = tuple(plan.pack[plan.names.index(sig)] for sig in signals)
         spec, length = plan.spec, plan.length
+        if not checksum:
+            spec = dataclasses.replace(spec, checksum_byte=None)
 
         def pack(values, counter: int = 0) -> bytes:
             return safety.seal_word(spec, _pack_word(fields, values), length, counter)

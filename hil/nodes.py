@@ -259,10 +259,12 @@ class PlantNode:
         """The command's values if it is valid: DLC and CHECKSUM, then (SecOC) MAC and
         freshness, then COUNTER and ranges; ``_FORGED`` for a bad MAC or freshness (the
         COUNTER state untouched), None for an invalid frame."""
-        if auth is not None:
+        if auth is not None and not auth.verify(data):
+            # (MAC first: an authentic frame then costs one CRC, in the unpacker; a frame
+            # that fails is a forgery if its CHECKSUM holds, a transmission error if not)
             spec = self.cmd_spec
             if len(data) == spec.dlc and data[spec.checksum_byte] == safety.checksum_of(
-                    spec, data) and not auth.verify(data):
+                    spec, data):
                 return _FORGED
         return self.unpack_cmd(data, rx, self.k)[0]
 
@@ -345,7 +347,9 @@ class EcuNode:
         self.state = ecu.init(params, FixedPath(params, build_tables(params), record)
                               if fixed_point else None)
         self.tx = Tx(codec, allowed=safety.TX_MESSAGES)
-        self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"))
+        # (with SecOC the CHECKSUM is written once, after the MAC: Sender.protect)
+        self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"),
+                                     checksum=key is None)
         self.unpack_sensors = codec.unpacker("PLANT_SENSORS", (
             "BODY_ACCEL_RAW", "WHEEL_ACCEL_RAW", "SUSP_DEFL_RAW", "MOTOR_CURRENT_RAW", "COUNTER"))
         self.sensors_spec = codec.specs[ID["PLANT_SENSORS"]]

@@ -120,15 +120,31 @@ class _Mac:
         self.base = CMAC(algorithms.AES(key))
         self.lay = lay
         self.head = lay.frame_id.to_bytes(2, "big")
-        self.keep = [i for i in range(lay.spec.dlc) if i not in lay.trailer]
+        keep = [i for i in range(lay.spec.dlc) if i not in lay.trailer]
+        # the authentic PDU's bytes as slices (one, for both secured messages)
+        self.runs = [(a, b + 1) for a, b in _runs(keep)]
 
     def of(self, data: bytes, fv: int) -> bytes:
         c = self.base.copy()
-        c.update(self.head + bytes(data[i] for i in self.keep) + fv.to_bytes(8, "big"))
+        c.update(self.head)
+        for a, b in self.runs:
+            c.update(data[a:b])
+        c.update(fv.to_bytes(8, "big"))
         return c.finalize()[:MAC_BITS // 8]
 
     def __deepcopy__(self, memo):         # (the CMAC context itself does not copy)
         return _Mac(self.key, self.lay)
+
+
+def _runs(idx: list[int]) -> list[tuple[int, int]]:
+    """Consecutive runs of sorted indices as (first, last) pairs."""
+    out: list[list[int]] = []
+    for i in idx:
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return [(a, b) for a, b in out]
 
 
 class Sender:
@@ -162,7 +178,8 @@ class Receiver:
 
     def verify(self, data: bytes) -> bool:
         """True for an authentic, fresh frame (and the freshness moves on); False for a bad
-        MAC, a replay or a stale frame (counted). The caller checked DLC first."""
+        MAC, a replay or a stale frame (counted). A frame that fails its CHECKSUM fails here
+        too: callers that must tell the two apart check the CHECKSUM of a failed one."""
         lay = self.lay
         if len(data) != lay.spec.dlc:
             self.rejected += 1

@@ -97,6 +97,31 @@ def hil_run(pace: str, duration_s: float | None) -> dict:
         return json.loads(res.stdout)["bench"]
 
 
+def secoc_us(n: int = 20000) -> tuple[float, float]:
+    """SecOC per ACTUATOR_CMD frame: (sign, verify) in microseconds, median of 5 runs of
+    ``n`` frames (the sender's protect; the receiver's verify of each in order)."""
+    from hil import secoc
+    from hil.codec import Codec
+
+    codec = Codec()
+    lay = secoc.layout(codec, "ACTUATOR_CMD")
+    key = bytes(range(16))
+    raw = codec.encode_raw("ACTUATOR_CMD", {"DUTY": 1000, "REGEN": 0, "ENABLE": 1,
+                                            "SENSOR_SEQ": 0}, 0)
+    sign, verify = [], []
+    for _ in range(5):
+        tx, rx = secoc.Sender(key, lay), secoc.Receiver(key, lay)
+        t0 = time.perf_counter()
+        frames = [tx.protect(raw) for _ in range(n)]
+        t1 = time.perf_counter()
+        ok = all(rx.verify(f) for f in frames)
+        t2 = time.perf_counter()
+        assert ok
+        sign.append((t1 - t0) / n * 1e6)
+        verify.append((t2 - t1) / n * 1e6)
+    return float(np.median(sign)), float(np.median(verify))
+
+
 def ga_tune_s() -> float:
     from hil.config import default_vehicle
     from calib.galqr import tune
@@ -121,6 +146,8 @@ def run(quick: bool, progress=print) -> dict:
     t = ecu_step_times(step_s, True)
     out["ecu_step_fixed_us_p50"], out["ecu_step_fixed_us_p99"] = (
         float(np.percentile(t, q)) for q in (50, 99))
+    progress("SecOC per frame ...")
+    out["secoc_sign_us"], out["secoc_verify_us"] = secoc_us(2000 if quick else 20000)
     progress("hil sim, full_road_section ...")
     out["sil_rtf"] = sil_rtf(5.0 if quick else None)
     progress("hil run --pace lockstep, full_road_section ...")
@@ -156,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
         for col in ("key", "value", "goal", "met"):
             table.add_column(col)
         for k in ("ecu_step_us_p50", "ecu_step_us_p99", "ecu_step_fixed_us_p50",
-                  "ecu_step_fixed_us_p99", "sil_rtf", "hil_lockstep_rtf",
+                  "ecu_step_fixed_us_p99", "secoc_sign_us", "secoc_verify_us", "sil_rtf",
+                  "hil_lockstep_rtf",
                   "realtime_missed_deadline_ratio", "ga_tune_s"):
             g = r["goals"].get(k)
             table.add_row(k, f"{r[k]:.4g}", g["goal"] if g else "", ("yes" if g["met"] else "NO") if g else "")
