@@ -34,8 +34,9 @@ class Limits:
     """Realtime pacing's limits (lockstep allows nothing). Missed deadlines: ticks the plant
     stepped without the command answering its sensor frame, and ticks of the plant's passive
     fallback, each over the ticks run. Lost: sensor frames the ECU never processed, and ticks
-    with a fault bit, each over the ticks run. The defaults hold on an idle 2-core host (``make bench``: about 0.2 %
-    missed); a host under load fails them, as it should: its timing is not the bench's."""
+    with a fault bit, each over the ticks run. The defaults hold on an idle 2-core host
+    (``make bench`` here: 0.14 to 0.41 % missed over 60 s); a host under load fails them, as
+    it should: its timing is not the bench's."""
     max_missed_ratio: float = 0.01
     max_lost_ratio: float = 0.001
 
