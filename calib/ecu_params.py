@@ -123,10 +123,20 @@ def load_gains(path: Path, cfg: VehicleConfig) -> np.ndarray:
     if (not isinstance(K, list) or len(K) != 5
             or not all(isinstance(k, (int, float)) and math.isfinite(k) for k in K)):
         raise ConfigError(f"{path}: key 'K' must be a list of 5 finite numbers")
-    if data.get("vehicle_sha256") not in (None, vehicle_digest(cfg)):
+    digest = data.get("vehicle_sha256")
+    if not isinstance(digest, str):
+        raise ConfigError(f"{path}: key 'vehicle_sha256' is missing (a gains file names the "
+                          f"vehicle it was tuned for); re-run python -m tools.tune_ga_lqr")
+    if digest != vehicle_digest(cfg):
         raise ConfigError(f"{path}: gains were tuned for another vehicle "
                           f"(vehicle_sha256 differs); re-run python -m tools.tune_ga_lqr")
-    return np.array(K, dtype=float)
+    K = np.array(K, dtype=float)
+    model = linear_model(cfg.vehicle, GRADE_GQ_M3["C"], NOMINAL_SPEED_MPS)
+    pole = float(np.max(np.linalg.eigvals(model.A - np.outer(model.B, K)).real))
+    if not pole < 0.0:
+        raise ConfigError(f"{path}: gains K make the closed loop unstable (pole at "
+                          f"{pole:+.3g} 1/s); re-run python -m tools.tune_ga_lqr")
+    return K
 
 
 def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path | None) -> np.ndarray:
@@ -145,6 +155,16 @@ def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path
 
 def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
           gains_file: Path | None = None) -> fp.EcuParams:
+    """The ECU's calibration for ``cfg``; a vehicle it cannot be designed for (no
+    stabilising LQR, a non-finite design) is a ConfigError with the reason."""
+    try:
+        return _build(cfg, opts, gains_file)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        raise ConfigError(f"{cfg.source}: no ECU calibration for this vehicle: {exc}") from None
+
+
+def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | None
+           ) -> fp.EcuParams:
     opts = opts or DesignOptions()
     vp, ap, sp = cfg.vehicle, cfg.actuator, cfg.sensors
     dt = opts.dt_s

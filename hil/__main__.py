@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from hil import config, verdict
 from hil.cli import (add_design_argument, add_json_argument, add_vehicle_argument,
@@ -271,4 +270,6 @@ def _sim(args) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from hil.cli import run_main
+
+    run_main(main)

@@ -34,10 +34,8 @@ def credentials(node: Optional[str]) -> dict:
 def dbc_senders(path=None) -> dict[str, frozenset]:
     """node -> the frame IDs the DBC names it (or the simulation, for the plant) the
     transmitter of."""
-    import cantools
+    from hil.codec import DBC_PATH, load_dbc
 
-    from hil.codec import DBC_PATH
-
-    db = cantools.database.load_file(str(path or DBC_PATH), strict=False)
+    db = load_dbc(path or DBC_PATH)
     return {node: frozenset(m.frame_id for m in db.messages if set(m.senders) & set(names))
             for node, names in NODE_SENDERS.items()}

@@ -82,6 +82,16 @@ def seed_arg(text: str) -> int:
     return value
 
 
+def run_main(main: Callable[[], int]) -> NoReturn:
+    """``sys.exit(main())``, with a ConfigError that escapes (e.g. a broken DBC, loaded at
+    import) as one line and exit 2, never a traceback."""
+    try:
+        code = main()
+    except ConfigError as exc:
+        fail(str(exc))
+    raise SystemExit(code)
+
+
 _OUT_LOCKS: dict = {}
 
 

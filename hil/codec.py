@@ -19,6 +19,7 @@ from typing import Callable, Mapping, NamedTuple, Optional
 
 import cantools
 
+from calib.errors import ConfigError
 from firmware import safety
 from firmware.fixedpoint import round_half_away
 
@@ -98,9 +99,23 @@ class _Plan(NamedTuple):
     scaled: tuple        # (signal, scale, offset)
 
 
+class DbcError(ConfigError, ValueError):
+    """A DBC the bench cannot use: one line naming the file and the reason."""
+
+
+def load_dbc(path: Path):
+    try:
+        return cantools.database.load_file(str(path))
+    except OSError as exc:
+        raise DbcError(f"{path}: cannot read the DBC: {exc.strerror or exc}") from None
+    except Exception as exc:  # noqa: BLE001 - cantools raises parser-specific errors
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DbcError(f"{path}: not a valid DBC: {first}") from None
+
+
 class Codec:
     def __init__(self, path: Path = DBC_PATH):
-        self.db = cantools.database.load_file(str(path))
+        self.db = load_dbc(path)
         self.specs: dict[int, safety.FrameSpec] = {}
         for m in self.db.messages:
             names = {s.name: s for s in m.signals}
@@ -117,8 +132,8 @@ class Codec:
         for m in self.db.messages:
             big = [sig.name for sig in m.signals if sig.byte_order != "little_endian"]
             if big:
-                raise ValueError(f"{path}: {m.name}.{big[0]} is big-endian; the bench's codec "
-                                 f"packs little-endian signals only")
+                raise DbcError(f"{path}: {m.name}.{big[0]} is big-endian; the bench's codec "
+                               f"packs little-endian signals only")
             packed = [sig for sig in m.signals if sig.name not in ("COUNTER", "CHECKSUM")]
             plan = _Plan(
                 name=m.name, frame_id=m.frame_id, length=m.length,

@@ -69,6 +69,10 @@ def markdown(report: dict, figures: list[str]) -> str:
               "|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in report["segments"]:
         r, a, t = s["ratio"], s["active"], s["duration_s"]
+        if not s.get("scored", True):
+            lines.append(f"| {s['grade']}@{s['speed_mps']:g} m/s | {s['note']} |"
+                         + " |" * 10)
+            continue
         lines.append(
             f"| {s['grade']}@{s['speed_mps']:g} m/s | {r['ba']:.3f} | {r['sws']:.3f} | "
             f"{r['dtd']:.3f} | {a['ba_rms_mps2']:.3f} | {1e3 * a['sws_rms_m']:.2f} | "

@@ -570,10 +570,15 @@ def main(argv: list[str] | None = None) -> int:
         if not got.startswith("SCHED_FIFO"):
             print(f"hil.hub: {got}", file=sys.stderr)
     log = (lambda m: print(f"hil.hub: {m}", file=sys.stderr, flush=True))
+    try:
+        senders = dbc_senders() if key else None
+    except ValueError as exc:          # (hil.codec.DbcError: a broken DBC, one line)
+        log(str(exc))
+        return 2
     if secret is None:
         log(f"no {SECRET_ENV} in the environment: every client may send anything")
     server = HubServer(args.port, log=log,
-                       secret=key, senders=dbc_senders() if key else None,
+                       secret=key, senders=senders,
                        allow_external_tx=args.allow_external_tx,
                        allow_unknown_ids=args.allow_unknown_ids)
 

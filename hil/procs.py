@@ -289,7 +289,10 @@ def main(role: str, args) -> int:
     cfg = vehicle_or_exit(args.vehicle)
     try:                            # the configuration first, then the key, then the node
         if role == "plant":
+            from hil.sil import check_route
+
             route = route_or_exit(args.route)
+            check_route(cfg, route)
         elif role == "ecu":
             from hil.sil import ecu_params
 

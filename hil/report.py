@@ -108,6 +108,10 @@ def render_sil(report: dict) -> None:
     for s in report["segments"]:
         r = s["ratio"]
         t = s["duration_s"]
+        if not s.get("scored", True):
+            table.add_row(f"{s['grade']}@{s['speed_mps']:g}", "not scored: shorter than the "
+                          "settling window", *[""] * 7)
+            continue
         table.add_row(f"{s['grade']}@{s['speed_mps']:g}", f"{r['ba']:.3f}", f"{r['sws']:.3f}",
                       f"{r['dtd']:.3f}", f"{s['active']['force_rms_n']:.0f}",
                       f"{s['grade_accuracy']:.2f}", f"{s['harvested_w']:.2f}",

@@ -34,6 +34,12 @@ from calib.iso8608 import (CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, GRA
                            convention_factor, gq_of, grade_of, road_noise_gain)
 
 DEFAULT_DX_M = 0.01
+# bounds that keep a route's memory and numbers sane, checked before anything is allocated
+MIN_DX_M = 1e-3                # road grid: 1 mm .. 0.1 m
+MIN_CUTOFF_N_PER_M = 1e-3      # the OU road's cut-off wavenumber: 1e-3 .. n0 (1/m)
+GQ_RANGE_M3 = (1e-9, 1e-1)     # G_q(n0): ISO 8608 A is 1.6e-5, H 1.6e-2
+MAX_ROUTE_S = 1800.0           # a route drives at most 30 min (1.8 M plant ticks)
+MAX_ROAD_SAMPLES = 20_000_000  # road grid points (160 MB of heights)
 MAX_SPEED_MPS = 70.0     # the DBC's declared range of VEHICLE_SPEED.SPEED (252 km/h)
 ROUTES_DIR = PACKAGE_DIR / "routes"
 
@@ -143,10 +149,11 @@ def parse_route(data: Mapping[str, Any], path: Path, name: str) -> Route:
         raise ConfigError(f"{path}: key 'road.convention' must be 'iso' or 'paper', got {convention!r}")
     cutoff = _num(path, "road.cutoff_n_per_m", road_table.get("cutoff_n_per_m", DEFAULT_CUTOFF_N_PER_M))
     dx = _num(path, "road.dx_m", road_table.get("dx_m", DEFAULT_DX_M))
-    if dx > 0.1:
-        raise ConfigError(f"{path}: key 'road.dx_m' must be at most 0.1 m, got {dx}")
-    if cutoff > N0_PER_M:
-        raise ConfigError(f"{path}: key 'road.cutoff_n_per_m' must be below n0 = 0.1 1/m, got {cutoff}")
+    if not MIN_DX_M <= dx <= 0.1:
+        raise ConfigError(f"{path}: key 'road.dx_m' must be in [{MIN_DX_M:g}, 0.1] m, got {dx}")
+    if not MIN_CUTOFF_N_PER_M <= cutoff < N0_PER_M:
+        raise ConfigError(f"{path}: key 'road.cutoff_n_per_m' must be in "
+                          f"[{MIN_CUTOFF_N_PER_M:g}, n0 = 0.1) 1/m, got {cutoff}")
     raw_segments = data.get("segment")
     if not isinstance(raw_segments, list) or not raw_segments:
         raise ConfigError(f"{path}: missing '[[segment]]' entries (at least one is needed)")
@@ -175,7 +182,18 @@ def parse_route(data: Mapping[str, Any], path: Path, name: str) -> Route:
             segments.append(make_segment(grade, length_m=length, speed_mps=speed))
         else:
             gq = _num(path, f"{where}.gq_m3", seg["gq_m3"])
+            if not GQ_RANGE_M3[0] <= gq <= GQ_RANGE_M3[1]:
+                raise ConfigError(f"{path}: key '{where}.gq_m3' must be in [{GQ_RANGE_M3[0]:g}, "
+                                  f"{GQ_RANGE_M3[1]:g}] m^3, got {gq}")
             segments.append(make_segment(gq_m3=gq, length_m=length, speed_mps=speed))
+    duration = sum(s.duration_s() for s in segments)
+    if duration > MAX_ROUTE_S:
+        raise ConfigError(f"{path}: the route drives {duration:.4g} s; at most {MAX_ROUTE_S:g} s "
+                          f"(split it into several runs)")
+    samples = (sum(s.length_m for s in segments) + 1.0) / dx
+    if samples > MAX_ROAD_SAMPLES:
+        raise ConfigError(f"{path}: the road grid would hold {samples:.3g} points (length / "
+                          f"road.dx_m); at most {MAX_ROAD_SAMPLES:.3g}: raise dx_m or shorten it")
     for key in ("name", "description"):
         if key in data and not isinstance(data[key], str):
             raise ConfigError(f"{path}: key '{key}' must be a string")

@@ -17,7 +17,7 @@ import numpy as np
 from firmware import params as fp
 from hil import secoc, verdict
 from hil.codec import Codec
-from hil.config import CONTROLLERS, RUN_MODES as MODES, VehicleConfig
+from hil.config import CONTROLLERS, RUN_MODES as MODES, ConfigError, VehicleConfig
 from calib.ecu_params import build, with_controllers
 from calib.options import DesignOptions
 from hil.metrics import rms
@@ -34,6 +34,25 @@ class SilTrace:
     segment: np.ndarray
     true_grade: np.ndarray
     arrays: dict = field(default_factory=dict)
+
+
+SPEED_NOISE_SIGMAS = 5.0     # a route's speed stays this many sensor sigmas below the DBC's
+
+
+def check_route(cfg: VehicleConfig, route: Route) -> None:
+    """The route's speeds must leave the speed sensor's noise (``SPEED_NOISE_SIGMAS`` sigma,
+    plus one ADC step) below VEHICLE_SPEED's declared maximum: else the measured speed
+    crosses it and every such frame is a RANGE fault (control effectively off)."""
+    from hil.road import MAX_SPEED_MPS
+
+    ch = cfg.sensors.speed
+    limit = MAX_SPEED_MPS - SPEED_NOISE_SIGMAS * ch.noise_std - ch.lsb
+    fastest = max(seg.speed_mps for seg in route.segments)
+    if fastest > limit:
+        raise ConfigError(
+            f"{route.name}: a segment drives {fastest:g} m/s; with the speed sensor's noise "
+            f"({ch.noise_std:g} m/s) the measured speed would pass VEHICLE_SPEED's maximum "
+            f"{MAX_SPEED_MPS:g} m/s: at most {limit:.4g} m/s on this vehicle")
 
 
 def ecu_params(cfg: VehicleConfig, mode: str, *, controller: Optional[str] = None,
@@ -80,6 +99,7 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
     control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs); ``key``: the
     SecOC key (default: a new one for this run)."""
+    check_route(cfg, route)
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
     codec = Codec()
@@ -134,6 +154,21 @@ def build_report(cfg, route, mode, controller, seed, trace: SilTrace, plant: dic
     return report
 
 
+def _unscored(seg, driven_s: float) -> dict:
+    """A segment the run drove no longer than the settling window: listed, flagged, with no
+    metrics (an RMS of what is left would be one of a handful of ticks)."""
+    nan = float("nan")
+    blank = {"ba_rms_mps2": nan, "sws_rms_m": nan, "dtd_rms_m": nan, "force_rms_n": nan}
+    return {"grade": seg.grade, "speed_mps": seg.speed_mps, "duration_s": seg.duration_s(),
+            "scored": False,
+            "note": f"driven {driven_s:g} s, not longer than the {SETTLE_S:g} s settling "
+                    f"window: not scored",
+            "active": dict(blank), "passive": dict(blank),
+            "ratio": {"ba": nan, "sws": nan, "dtd": nan}, "grade_accuracy": nan,
+            "harvested_j": nan, "consumed_j": nan, "harvested_w": nan, "road_power_w": nan,
+            "road_estimate_rmse_m": nan}
+
+
 def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hits) -> dict:
     dt = trace.dt_s
     a = trace.arrays
@@ -145,7 +180,10 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
         idx = np.flatnonzero(trace.segment == i)
         if not len(idx):
             continue
-        sel = idx[settle:] if len(idx) > settle else idx[-1:]
+        if len(idx) <= settle:          # nothing left after the settling window: flagged
+            segments.append(_unscored(seg, len(idx) * dt))
+            continue
+        sel = idx[settle:]
         act = {"ba_rms_mps2": rms(a["ba"][sel]), "sws_rms_m": rms(a["sws"][sel]),
                "dtd_rms_m": rms(a["dtd"][sel]), "force_rms_n": rms(a["force"][sel])}
         pas = {"ba_rms_mps2": rms(a["p_ba"][sel]), "sws_rms_m": rms(a["p_sws"][sel]),
@@ -160,7 +198,7 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
         road_power = c_s * float(np.mean(a["p_vrel"][sel] ** 2))
         segments.append({
             "grade": seg.grade, "speed_mps": seg.speed_mps, "duration_s": seg.duration_s(),
-            "active": act, "passive": pas,
+            "scored": True, "active": act, "passive": pas,
             "ratio": {k: act[f"{k}_rms_{u}"] / pas[f"{k}_rms_{u}"]
                       for k, u in (("ba", "mps2"), ("sws", "m"), ("dtd", "m"))},
             "grade_accuracy": hits / len(sel),

@@ -260,11 +260,16 @@ def _check_inputs(args):
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route)
     design_or_exit(args.design)          # (checked here; the ECU node reads it)
-    if args.script:
-        try:
+    try:
+        sil.check_route(cfg, route)
+        if args.script:
             load_driver_script(args.script)
-        except ConfigError as exc:
-            fail(str(exc))
+        if args.gains:
+            from calib.ecu_params import load_gains
+
+            load_gains(Path(args.gains), cfg)
+    except ConfigError as exc:
+        fail(str(exc))
     if args.driver == "script" and not args.script:
         fail("run: --driver script needs --script FILE")
     return cfg, route

@@ -13,6 +13,7 @@ import pytest
 from firmware import akf
 from firmware.kernels import akf as akf_kernels
 from hil import sil
+from hil.cli import _clean
 from hil.config import default_vehicle
 from hil.plant import QuarterCarPlant
 from hil.road import constant_route, load_route
@@ -24,16 +25,17 @@ CFG = default_vehicle()
 def test_compiled_and_interpreted_runs_give_the_same_report():
     """``hil sim`` with NUMBA_DISABLE_JIT=1 (every kernel run by the interpreter) against the
     compiled run in this process: the whole report, trace hash and energy ledger included,
-    is identical (IEEE arithmetic in a fixed order, no fast-math). The stretch crosses the
-    A -> B segment change and the R-hat guard acts (the eigen-decomposition path)."""
+    is identical (IEEE arithmetic in a fixed order, no fast-math). On this stretch the R-hat
+    guard acts (the eigen-decomposition path)."""
     args = [sys.executable, "-m", "hil", "sim", "--route", "full_road_section", "--mode",
-            "auto", "--seed", "3", "--duration", "2.5", "--json"]
+            "auto", "--seed", "3", "--duration", "4", "--json"]
     env = dict(os.environ, NUMBA_DISABLE_JIT="1")
     res = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, env=env, timeout=900)
     assert res.returncode == 0, res.stderr[-2000:]
     interpreted = json.loads(res.stdout)
-    compiled, _ = sil.run(CFG, load_route("full_road_section"), "auto", 3, duration_s=2.5)
-    compiled = json.loads(json.dumps(compiled))
+    compiled, _ = sil.run(CFG, load_route("full_road_section"), "auto", 3, duration_s=4.0)
+    compiled = json.loads(json.dumps(_clean(compiled)))      # (NaN as the CLI writes it)
+    assert compiled["segments"][0]["scored"]                  # (4 s: 1 s past the settling)
     assert interpreted["akf_r_guard_hits"] > 0
     assert interpreted == compiled
 

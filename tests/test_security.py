@@ -217,8 +217,9 @@ def test_sim_tick_is_obeyed_in_lockstep_only():
 
 def _attack_run(tmp_path, *extra):
     """A lockstep bench run with an outside process on its hub that sends a forged
-    ACTUATOR_CMD (88 % duty, valid CRC and COUNTER) every millisecond and a forged
-    DRIVER_REQUEST (choose passive) every 100 ms, the way the issue's attack did."""
+    ACTUATOR_CMD (88 % duty, valid CRC and COUNTER) every millisecond, replays genuine
+    commands it heard on the bus, and sends a forged DRIVER_REQUEST (choose passive) every
+    100 ms, the way the issue's attack did."""
     import json
     import time
 
@@ -233,12 +234,19 @@ def _attack_run(tmp_path, *extra):
         assert time.monotonic() < deadline and sup.poll() is None, "the bench did not start"
         time.sleep(0.05)
     attacker = _client(url)
-    sent = {"cmd": 0, "req": 0}
+    sent = {"cmd": 0, "req": 0, "replayed": 0}
     try:
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end and sup.poll() is None:
             _send(attacker, ID["ACTUATOR_CMD"], _forged_cmd(sent["cmd"] & 0xF))
             sent["cmd"] += 1
+            # and a genuine command heard on the bus (a read-only client hears all), replayed
+            heard = attacker.recv(0)
+            while heard is not None and heard.arbitration_id != ID["ACTUATOR_CMD"]:
+                heard = attacker.recv(0)
+            if heard is not None and sent["cmd"] % 10 == 0:
+                _send(attacker, ID["ACTUATOR_CMD"], bytes(heard.data))
+                sent["replayed"] += 1
             if sent["cmd"] % 100 == 0:
                 _send(attacker, ID["DRIVER_REQUEST"], CODEC.encode("DRIVER_REQUEST", {
                     "REQ_KIND": fp.REQ_CHOOSE, "REQ_MODE": fp.MODE_PASSIVE, "REQ_ID": 9,
@@ -269,13 +277,14 @@ def test_with_external_tx_allowed_secoc_still_rejects_every_forgery(tmp_path):
     import numpy as np
 
     code, rep, err, sent = _attack_run(tmp_path, "--allow-external-tx")
+    assert sent["replayed"] > 0          # forged and replayed commands both
     # every forged command reached the plant and was rejected there, every forged request
     # the ECU; none was applied; the verdict says the run was attacked
     assert code == 1 and rep["verdict"] == "fail"
     failed = {c["name"] for c in rep["checks"] if not c["ok"]}
     assert "plant_auth_failures" in failed and "frame_faults" in failed
     # (how much of the attack met the run depends on the host's speed: the run may end first)
-    assert 0 < rep["plant_auth_failures"] <= sent["cmd"]
+    assert 0 < rep["plant_auth_failures"] <= sent["cmd"] + sent["replayed"]
     assert 0 < rep["frame_faults"].get("DRIVER_REQUEST:auth", 0) <= sent["req"]
     assert set(rep["frame_faults"]) == {"DRIVER_REQUEST:auth"}   # the real ones untouched
     assert rep["plant_bad_cmd_frames"] == 0 and rep["plant_fallback_ticks"] == 0

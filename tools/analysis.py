@@ -10,10 +10,12 @@ Every sub-command takes ``--vehicle FILE`` and ``--convention iso|paper``.
 from __future__ import annotations
 
 import argparse
-import sys
+import math
 
-from hil.cli import (add_json_argument, add_vehicle_argument, emit, grade_arg, positive_float,
-                     progress_bar, seed_arg, speed_arg, vehicle_or_exit)
+import numpy as np
+
+from hil.cli import (add_json_argument, add_vehicle_argument, emit, fail, grade_arg,
+                     positive_float, progress_bar, seed_arg, speed_arg, vehicle_or_exit)
 from hil.config import VehicleConfig
 from hil.drive import drive
 from calib.model import linear_model, paper_thresholds, passive_rms
@@ -157,18 +159,36 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     cfg = vehicle_or_exit(args.vehicle)
 
-    if args.command == "passive":
-        with progress_bar("simulating", bool(args.simulate) and not args.json) as progress:
-            out = passive(cfg, args.grade, args.speed, args.convention, args.cutoff,
-                          args.simulate, args.seed, progress)
-        emit(out, args.json, _render_passive)
-    elif args.command == "thresholds":
-        emit(thresholds(cfg, args.convention, args.cutoff), args.json, _render_thresholds)
-    else:
-        emit(limits(cfg, args.grade, args.speed, args.convention, args.cutoff), args.json,
-             _render_limits)
+    try:
+        if args.command == "passive":
+            with progress_bar("simulating", bool(args.simulate) and not args.json) as progress:
+                out = passive(cfg, args.grade, args.speed, args.convention, args.cutoff,
+                              args.simulate, args.seed, progress)
+            render = _render_passive
+        elif args.command == "thresholds":
+            out, render = thresholds(cfg, args.convention, args.cutoff), _render_thresholds
+        else:
+            out = limits(cfg, args.grade, args.speed, args.convention, args.cutoff)
+            render = _render_limits
+    except (ValueError, np.linalg.LinAlgError) as exc:   # a design the analysis cannot do
+        fail(f"{cfg.source}: {args.command}: {exc}")
+    if not _all_finite(out):
+        fail(f"{cfg.source}: {args.command}: the results are not finite (check the vehicle)")
+    emit(out, args.json, render)
     return 0
 
 
+def _all_finite(value) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, dict):
+        return all(_all_finite(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_all_finite(v) for v in value)
+    return True
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    from hil.cli import run_main
+
+    run_main(main)

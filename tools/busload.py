@@ -9,7 +9,6 @@ bit stuffing floor((34 + 8 n - 1) / 4) over the stuffed part (SOF to CRC).
 from __future__ import annotations
 
 import argparse
-import sys
 
 from hil.cli import add_json_argument, emit
 from hil.codec import DBC_PATH, Codec
@@ -63,4 +62,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from hil.cli import run_main
+
+    run_main(main)

@@ -1,0 +1,122 @@
+"""Bounded, clear input handling: every absurd input of issue 17 gets one error line and exit
+2, before anything large is allocated; what cannot be scored is flagged, not scored."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from calib.ecu_params import default_gains_path
+from hil.codec import Codec, DbcError
+from hil.config import default_vehicle
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLE3 = (ROOT / "hil" / "vehicles" / "table3.toml").read_text()
+
+
+def _route(tmp_path, body: str, road: str = "") -> str:
+    path = tmp_path / "route.toml"
+    path.write_text((f"[road]\n{road}\n" if road else "") + body)
+    return str(path)
+
+
+def _segment(length="100", speed="20", grade='grade = "B"') -> str:
+    return f"[[segment]]\n{grade}\nlength_m = {length}\nspeed_mps = {speed}\n"
+
+
+def _vehicle(tmp_path, key: str, value: str) -> str:
+    lines = [f"{key} = {value}" if ln.split("=")[0].strip() == key else ln
+             for ln in TABLE3.splitlines()]
+    assert any(ln == f"{key} = {value}" for ln in lines), key
+    path = tmp_path / "vehicle.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def _one_line_error(args, want: str, timeout=120):
+    proc = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
+    err = proc.stderr.strip()
+    assert "Traceback" not in proc.stderr and err.count("\n") == 0, err
+    assert want in err, err
+
+
+@pytest.mark.parametrize("road,segment,want", [
+    ("dx_m = 1e-7", _segment(), "'road.dx_m' must be in [0.001, 0.1] m"),
+    ("cutoff_n_per_m = 1e-300", _segment(), "'road.cutoff_n_per_m' must be in [0.001"),
+    ("", _segment(length="1e12"), "the route drives 5e+10 s; at most 1800 s"),
+    ("", _segment(grade="gq_m3 = 5.0"), "'segment[0].gq_m3' must be in [1e-09, 0.1]"),
+    ("dx_m = 0.001", _segment(length="30000"), "the road grid would hold 3e+07 points"),
+    ("", _segment(length="700", speed="70"), "at most 69.94 m/s on this vehicle"),
+])
+def test_absurd_routes_are_one_line_errors(tmp_path, road, segment, want):
+    _one_line_error(["-m", "hil", "sim", "--route", _route(tmp_path, segment, road),
+                     "--duration", "1"], want)
+
+
+@pytest.mark.parametrize("key,value,want", [
+    ("sprung_mass_kg", "1e-6", "fastest mode (1.592e+08 Hz) is too fast for the plant step"),
+    ("spring_stiffness_n_per_m", "1e15", "is too fast for the plant step"),
+    ("tire_stiffness_n_per_m", "1e-6", "vehicle.tire_stiffness_n_per_m sags 3.53e+09 m"),
+    ("screw_lead_m", "1e-9", "exceeds 32767 N, FORCE_CMD's range"),
+])
+def test_vehicles_that_cannot_be_simulated_are_refused_with_the_reason(tmp_path, key, value,
+                                                                       want):
+    path = _vehicle(tmp_path, key, value)
+    _one_line_error(["-m", "hil", "sim", "--vehicle", path, "--duration", "1"], want)
+    if key == "sprung_mass_kg":          # the analysis tools too (they gave NaN, exit 0)
+        for sub in ("passive", "limits"):
+            _one_line_error(["-m", "tools.analysis", sub, "--grade", "B", "--speed", "20",
+                             "--vehicle", path], want)
+
+
+def test_gains_files_must_name_their_vehicle_and_stabilise_it(tmp_path):
+    shipped = json.loads(default_gains_path(default_vehicle()).read_text())
+    no_hash = dict(shipped)
+    no_hash.pop("vehicle_sha256")
+    flipped = dict(shipped, K=[-k for k in shipped["K"]])
+    for name, doc, want in (("nohash", no_hash, "key 'vehicle_sha256' is missing"),
+                            ("flipped", flipped, "make the closed loop unstable (pole at +")):
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps(doc))
+        _one_line_error(["-m", "hil", "sim", "--gains", str(path), "--duration", "1"], want)
+        _one_line_error(["-m", "hil", "run", "--gains", str(path), "--out",
+                         str(tmp_path / "o"), "--duration", "1"], want)
+
+
+def test_out_problems_are_one_line(tmp_path):
+    afile = tmp_path / "file"
+    afile.write_text("x")
+    _one_line_error(["-m", "hil", "sim", "--duration", "1", "--out", str(afile / "sub")],
+                    "cannot create the directory")
+    _one_line_error(["-m", "hil", "sim", "--duration", "1", "--out", str(afile)],
+                    "cannot create the directory")
+
+
+def test_dbc_problems_are_one_line(tmp_path):
+    bad = tmp_path / "bad.dbc"
+    bad.write_text('VERSION ""\nBO_ garbage\n')
+    for path, want in ((tmp_path / "none.dbc", "cannot read the DBC: No such file"),
+                       (bad, "not a valid DBC: ")):
+        with pytest.raises(DbcError) as exc:
+            Codec(path)
+        assert want in str(exc.value) and "\n" not in str(exc.value)
+    # and the command line turns one that escapes (a DBC is loaded at import) into one line
+    code = ("import hil.codec as c; from pathlib import Path; c.DBC_PATH = Path('/no/such.dbc');"
+            " import hil.cli as cli; cli.run_main(lambda: c.Codec(c.DBC_PATH) and 0)")
+    _one_line_error(["-c", code], "/no/such.dbc: cannot read the DBC")
+
+
+def test_segments_shorter_than_the_settling_window_are_flagged_not_scored(tmp_path):
+    route = _route(tmp_path, _segment(length="40") + _segment(length="200", grade='grade = "C"'))
+    proc = subprocess.run([sys.executable, "-m", "hil", "sim", "--route", route, "--mode",
+                           "comfort", "--json"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-1500:]
+    short, long_ = json.loads(proc.stdout)["segments"]
+    assert short["scored"] is False and "not scored" in short["note"]
+    assert short["ratio"] == {"ba": None, "sws": None, "dtd": None}
+    assert long_["scored"] is True and 0 < long_["ratio"]["ba"] < 2
