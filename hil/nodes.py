@@ -256,9 +256,9 @@ class PlantNode:
         return []
 
     def _checked(self, data: bytes, rx: safety.RxState, auth):
-        """The command's values if it is valid: DLC and CHECKSUM, then (SecOC) MAC and
-        freshness, then COUNTER and ranges; ``_FORGED`` for a bad MAC or freshness (the
-        COUNTER state untouched), None for an invalid frame."""
+        """The command's values if it is valid; ``_FORGED`` for a frame whose DLC and
+        CHECKSUM hold but whose SecOC MAC or freshness fails (the COUNTER state untouched);
+        None for an invalid frame (DLC, CHECKSUM, COUNTER, range: the unpacker's checks)."""
         if auth is not None and not auth.verify(data):
             # (MAC first: an authentic frame then costs one CRC, in the unpacker; a frame
             # that fails is a forgery if its CHECKSUM holds, a transmission error if not)
