@@ -290,3 +290,42 @@ def test_with_external_tx_allowed_secoc_still_rejects_every_forgery(tmp_path):
     assert rep["plant_bad_cmd_frames"] == 0 and rep["plant_fallback_ticks"] == 0
     mode = np.load(tmp_path / "ecu.npz")["mode"]
     assert np.all(mode[200:] == fp.MODE_COMFORT)
+
+
+@pytest.mark.hil
+def test_the_run_secret_and_key_never_go_on_a_command_line(tmp_path):
+    """The hub's secret reaches the hub and the nodes in their environment only; the SecOC
+    key in a 0600 file whose path (not the key) is on the nodes' command lines."""
+    import signal
+    import time
+
+    from tests.procutil import children, cmdline
+
+    sup = subprocess.Popen([sys.executable, "-m", "hil", "run", "--out", str(tmp_path),
+                            "--route", str(ROOT / "tests" / "golden" / "routes" / "b20.toml"),
+                            "--mode", "comfort"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        kids: dict = {}
+        while time.monotonic() < deadline:
+            kids = {p: cmdline(p) for p in children(sup.pid)}
+            if sum((" plant " in c) + (" ecu " in c) + (" app " in c) + ("hil.hub" in c)
+                   for c in kids.values()) == 4:
+                break
+            time.sleep(0.1)
+        assert len(kids) >= 4, kids
+        secrets = set()
+        for pid in kids:
+            env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+            secrets |= {e.split(b"=", 1)[1].decode() for e in env
+                        if e.startswith(auth.SECRET_ENV.encode() + b"=")}
+        assert len(secrets) == 1                       # one per run, handed to all four
+        secret, = secrets
+        key = (tmp_path / secoc.KEY_FILE_NAME).read_text().strip()
+        assert stat.S_IMODE((tmp_path / secoc.KEY_FILE_NAME).stat().st_mode) == 0o600
+        for line in (*kids.values(), cmdline(sup.pid)):
+            assert secret not in line and key not in line, line
+    finally:
+        sup.send_signal(signal.SIGINT)
+        sup.wait(60)
