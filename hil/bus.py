@@ -270,8 +270,7 @@ class Hub:
     def stop(self, timeout_s: float = 5.0) -> None:
         if self.proc is None or self.proc.poll() is not None:
             return
-        self.proc.terminate()
-        _continue(self.proc.pid)        # a stopped process handles SIGTERM only once resumed
+        terminate(self.proc)
         try:
             self.proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
@@ -285,11 +284,15 @@ class Hub:
         self.stop()
 
 
-def _continue(pid: int) -> None:
-    try:
-        os.kill(pid, signal.SIGCONT)
-    except OSError:
-        pass
+def terminate(proc: subprocess.Popen) -> None:
+    """SIGTERM to a process this program started, then SIGCONT: a stopped (SIGSTOP) process
+    handles the SIGTERM only once resumed. Never raises."""
+    if proc.poll() is None:
+        for sig in (signal.SIGTERM, signal.SIGCONT):
+            try:
+                proc.send_signal(sig)
+            except OSError:
+                pass
 
 
 SHUTDOWN_S = 2.0

@@ -545,8 +545,6 @@ class HubServer:
 def main(argv: list[str] | None = None) -> int:
     import os
 
-    from hil.auth import SECRET_ENV, dbc_senders
-
     ap = argparse.ArgumentParser("python -m hil.hub", description=__doc__.splitlines()[0])
     ap.add_argument("-p", "--port", type=int, required=True)
     ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
@@ -557,11 +555,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="nodes may also send IDs the DBC does not define (the fault "
                          "campaign's babbling sender)")
     args = ap.parse_args(argv)
-    secret = os.environ.pop(SECRET_ENV, None)
+    secret = os.environ.pop(auth.SECRET_ENV, None)
     try:
         key = bytes.fromhex(secret) if secret else None
     except ValueError:
-        print(f"hil.hub: {SECRET_ENV} is not hex", file=sys.stderr)
+        print(f"hil.hub: {auth.SECRET_ENV} is not hex", file=sys.stderr)
         return 2
     if args.rt_priority:
         from hil.bus import set_rt_priority
@@ -571,12 +569,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"hil.hub: {got}", file=sys.stderr)
     log = (lambda m: print(f"hil.hub: {m}", file=sys.stderr, flush=True))
     try:
-        senders = dbc_senders() if key else None
+        senders = auth.dbc_senders() if key else None
     except ValueError as exc:          # (hil.codec.DbcError: a broken DBC, one line)
         log(str(exc))
         return 2
     if secret is None:
-        log(f"no {SECRET_ENV} in the environment: every client may send anything")
+        log(f"no {auth.SECRET_ENV} in the environment: every client may send anything")
     server = HubServer(args.port, log=log,
                        secret=key, senders=senders,
                        allow_external_tx=args.allow_external_tx,

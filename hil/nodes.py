@@ -164,13 +164,10 @@ class PlantNode:
         self.cmd_rx = safety.RxState()
         self.cmd_rx_wire = safety.RxState()     # (fault campaign: every command on the wire)
         # SecOC (key None: the unsecured path, for tests of the receive path only)
-        self.cmd_spec = codec.specs[ID["ACTUATOR_CMD"]]
-        self.cmd_auth = secoc.make(codec, key, receives=("ACTUATOR_CMD",))[1].get(
-            ID["ACTUATOR_CMD"])
+        self.cmd_auth = secoc.receiver(codec, key, "ACTUATOR_CMD")
         self.cmd_auth_wire = copy.deepcopy(self.cmd_auth)
         self.auth_failures = 0              # ACTUATOR_CMD frames with a bad MAC or freshness
         self.auth_failures_booked = 0       # ... of them in the per-tick record so far
-        self.in_extra = False
         # the frames on_frame does nothing with (a bus harness may skip them)
         self.ignore = frozenset(ID.values()) - {ID["ACTUATOR_CMD"]}
         self.k = 0
@@ -220,52 +217,47 @@ class PlantNode:
         that answers this tick's sensor frame (SENSOR_SEQ) ends the tick in lockstep; the rest
         are counted (``bad_cmd_frames``, ``stale_cmd_frames``) and never stepped on."""
         if fid == ID["ACTUATOR_CMD"]:
-            on_wire = False
-            if self.inject is not None and not self.in_extra:
+            if self.inject is not None:
                 # the campaign's forged and replayed commands: received as any frame is
-                self.in_extra = True
-                try:
-                    for extra in self.inject.rx_extra(self, data):
-                        self.on_frame(fid, extra)
-                finally:
-                    self.in_extra = False
-                # the fault campaign loses commands in the plant's receiver after the ECU sent
-                # them: the ECU's tick is over all the same (lockstep), as a receiver that
-                # sees every frame on the wire judges it (the plant's own receiver rejects the
-                # first command after a loss: its COUNTER jumped)
-                w = self._checked(data, self.cmd_rx_wire, self.cmd_auth_wire)
-                on_wire = w is not None and w is not _FORGED and self._answers(w[3])
-                if self.inject.drop_rx(self, fid):
-                    self.cmd_fresh |= on_wire
-                    return []
-            v = self._checked(data, self.cmd_rx, self.cmd_auth)
-            if v is _FORGED:
-                self.auth_failures += 1
-                return []
-            if v is None:
-                self.bad_cmd_frames += 1
-                self.cmd_fresh |= on_wire
-                return []
-            duty, regen, enable, self.cmd_seq = v
-            self.cmd = (duty, bool(regen), bool(enable))
-            self.cmd_tick = self.k
-            if self._answers(self.cmd_seq):
-                self.cmd_fresh = True
-            else:
-                self.stale_cmd_frames += 1
+                for extra in self.inject.rx_extra(self, data):
+                    self._receive_cmd(extra)
+            self._receive_cmd(data)
         return []
+
+    def _receive_cmd(self, data: bytes) -> None:
+        on_wire = False
+        if self.inject is not None:
+            # the fault campaign loses commands in the plant's receiver after the ECU sent
+            # them: the ECU's tick is over all the same (lockstep), as a receiver that sees
+            # every frame on the wire judges it (the plant's own receiver rejects the first
+            # command after a loss: its COUNTER jumped)
+            w = self._checked(data, self.cmd_rx_wire, self.cmd_auth_wire)
+            on_wire = w is not None and w is not _FORGED and self._answers(w[3])
+            if self.inject.drop_rx(self, ID["ACTUATOR_CMD"]):
+                self.cmd_fresh |= on_wire
+                return
+        v = self._checked(data, self.cmd_rx, self.cmd_auth)
+        if v is _FORGED:
+            self.auth_failures += 1
+            return
+        if v is None:
+            self.bad_cmd_frames += 1
+            self.cmd_fresh |= on_wire
+            return
+        duty, regen, enable, self.cmd_seq = v
+        self.cmd = (duty, bool(regen), bool(enable))
+        self.cmd_tick = self.k
+        if self._answers(self.cmd_seq):
+            self.cmd_fresh = True
+        else:
+            self.stale_cmd_frames += 1
 
     def _checked(self, data: bytes, rx: safety.RxState, auth):
         """The command's values if it is valid; ``_FORGED`` for a frame whose DLC and
         CHECKSUM hold but whose SecOC MAC or freshness fails (the COUNTER state untouched);
         None for an invalid frame (DLC, CHECKSUM, COUNTER, range: the unpacker's checks)."""
-        if auth is not None and not auth.verify(data):
-            # (MAC first: an authentic frame then costs one CRC, in the unpacker; a frame
-            # that fails is a forgery if its CHECKSUM holds, a transmission error if not)
-            spec = self.cmd_spec
-            if len(data) == spec.dlc and data[spec.checksum_byte] == safety.checksum_of(
-                    spec, data):
-                return _FORGED
+        if auth is not None and auth.forged(data):
+            return _FORGED
         return self.unpack_cmd(data, rx, self.k)[0]
 
     def _answers(self, seq: int) -> bool:
@@ -360,11 +352,8 @@ class EcuNode:
         self.spec_speed = self.rx_specs[ID["VEHICLE_SPEED"]]
         self.rx = {fid: safety.RxState() for fid in self.rx_specs}
         # SecOC: the command signed, the driver's request verified (key None: unsecured)
-        sec_tx, sec_rx = secoc.make(codec, key, sends=("ACTUATOR_CMD",),
-                                    receives=("DRIVER_REQUEST",))
-        self.cmd_sec = sec_tx.get(ID["ACTUATOR_CMD"])
-        self.req_auth = sec_rx.get(ID["DRIVER_REQUEST"])
-        self.req_spec = codec.specs[ID["DRIVER_REQUEST"]]
+        self.cmd_sec = secoc.sender(codec, key, "ACTUATOR_CMD")
+        self.req_auth = secoc.receiver(codec, key, "DRIVER_REQUEST")
         # SIM_TICK (the simulated timer tick of a suppressed sensor frame) only in lockstep
         self.listen = set(self.rx_specs) | ({ID["SIM_TICK"]} if lockstep else set())
         # known frames of others (and SIM_TRUTH): on_frame does nothing with them
@@ -407,7 +396,8 @@ class EcuNode:
                 self.seq = safety.counter_of(self.sensors_spec, data) & 0x3   # (as sent)
             self._note(faults, "PLANT_SENSORS")
             return []
-        if fid == ID["DRIVER_REQUEST"] and self.req_auth is not None and self._forged(data):
+        if fid == ID["DRIVER_REQUEST"] and self.req_auth is not None and \
+                self.req_auth.forged(data):
             self._note(safety.FAULT_AUTH, "DRIVER_REQUEST")   # forged or replayed: not the
             return []                                         # app's answer, state untouched
         d = self.codec.decode(fid, data, rx, self.k, scaling=False,
@@ -430,13 +420,6 @@ class EcuNode:
         else:
             self._note(d.faults, f"0x{fid:X}")
         return []
-
-    def _forged(self, data: bytes) -> bool:
-        """A DRIVER_REQUEST with a valid DLC and CHECKSUM whose SecOC MAC or freshness fails
-        (checked before COUNTER, which it then never touches)."""
-        spec = self.req_spec
-        return (len(data) == spec.dlc and data[spec.checksum_byte] == safety.checksum_of(
-            spec, data) and not self.req_auth.verify(data))
 
     def ready(self) -> bool:
         return bool(self.pending) and self.held_cmd is None
@@ -587,8 +570,7 @@ class AppNode:
         self.faults_seen: list[tuple[int, int, int]] = []
         self.on_faults: Optional[Callable[[float, int, int], None]] = None
         self.inject = inject                 # hil.faults.Injector (fault campaign) or None
-        self.req_sec = secoc.make(codec, key, sends=("DRIVER_REQUEST",))[0].get(
-            ID["DRIVER_REQUEST"])
+        self.req_sec = secoc.sender(codec, key, "DRIVER_REQUEST")
 
     def push(self, kind: str, mode: Optional[int] = None) -> None:
         self.queued.append((kind, mode))

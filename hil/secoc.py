@@ -197,12 +197,23 @@ class Receiver:
         self.rejected += 1
         return False
 
+    def forged(self, data: bytes) -> bool:
+        """True for a frame whose DLC and CHECKSUM hold but whose MAC or freshness fails (an
+        attacker, not a transmission error); an authentic one moves the freshness on. MAC
+        first: an authentic frame then costs no CRC here (the unpacker checks it)."""
+        if self.verify(data):
+            return False
+        spec = self.lay.spec
+        return len(data) == spec.dlc and (spec.checksum_byte is None or data[
+            spec.checksum_byte] == safety.checksum_of(spec, data))
 
-def make(codec, key: Optional[bytes], sends: tuple = (), receives: tuple = ()):
-    """(senders, receivers) by frame ID for a node with ``key`` (None: no SecOC, nothing
-    signed or checked: only for tests of the unsecured path)."""
-    if key is None:
-        return {}, {}
-    tx = {codec.message(n).frame_id: Sender(key, layout(codec, n)) for n in sends}
-    rx = {codec.message(n).frame_id: Receiver(key, layout(codec, n)) for n in receives}
-    return tx, rx
+
+def sender(codec, key: Optional[bytes], name: str) -> Optional[Sender]:
+    """The signer of ``name`` for a node with ``key`` (None without a key: the unsecured
+    path, for tests of the receive path only)."""
+    return None if key is None else Sender(key, layout(codec, name))
+
+
+def receiver(codec, key: Optional[bytes], name: str) -> Optional[Receiver]:
+    """The verifier of ``name`` for a node with ``key`` (None without a key)."""
+    return None if key is None else Receiver(key, layout(codec, name))

@@ -31,7 +31,7 @@ from firmware.params import GRADE_NAMES, MODE_NAMES
 from hil import secoc, sil, verdict
 from hil.auth import SECRET_ENV
 from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, close_bus, die_with_parent,
-                     resolve, rt_of)
+                     resolve, rt_of, terminate)
 from hil.buslog import BusLogFile
 from hil.codec import Codec
 from hil.nodes import ID, LockstepClock, message_name
@@ -91,13 +91,7 @@ class Node:
         return lines[-1] if lines else "(no message)"
 
     def terminate(self) -> None:
-        """SIGTERM (and SIGCONT: a stopped node handles it only once resumed)."""
-        if self.proc.poll() is None:
-            for sig in (signal.SIGTERM, signal.SIGCONT):
-                try:
-                    self.proc.send_signal(sig)
-                except OSError:
-                    pass
+        terminate(self.proc)
 
     def stop(self, timeout_s: float = 10.0) -> Optional[int]:
         """SIGTERM, then SIGKILL after ``timeout_s``. Returns the exit code."""
@@ -445,12 +439,17 @@ def _report(out: Path, cfg, route, args, n: int, dt: float, summaries: dict, log
                                       sil.fault_ticks(trace)))
     write_outputs(out, report, trace)
     if getattr(args, "junit", None):
-        verdict.write_junit(args.junit, f"hil run {route.name} {args.mode} {args.pace}",
+        verdict.write_junit(args.junit, _suite(route, args),
                             [verdict.Check(**c) for c in report["checks"]], wall)
     finish(report, None, "report.json", args.json, render_sil)
     if not args.json:
         print(f"report: {out / 'report.md'} (and report.json, bus.log, figures)")
     return verdict.exit_code(report)
+
+
+def _suite(route, args) -> str:
+    """The JUnit suite name of a bench run."""
+    return f"hil run {route.name} {args.mode} {args.pace}"
 
 
 def _build(out: Path, cfg, route, args, dt: float, summaries: dict):
@@ -495,7 +494,7 @@ def _partial_report(out: Path, cfg, route, args, n: int, dt: float, logger: Opti
     except Exception as exc:  # noqa: BLE001 - the reason was already said; say this too
         print(f"run failed: could not write the partial report: {exc}", file=sys.stderr)
     if getattr(args, "junit", None):
-        verdict.write_junit(args.junit, f"hil run {route.name} {args.mode} {args.pace}",
+        verdict.write_junit(args.junit, _suite(route, args),
                             [verdict.Check(**c) for c in report["checks"]])
     if args.json:
         from hil.cli import emit
