@@ -9,9 +9,10 @@ the ``cryptography`` package) truncated to its first 24 bits, over
 where the authentic PDU is the payload without its ``FRESHNESS``, ``MAC`` and ``CHECKSUM``
 bytes, and the freshness value is a 64-bit counter per message and direction, one up per
 frame sent; its low 8 bits travel in ``FRESHNESS``. The CHECKSUM (CRC-8, ``firmware.safety``)
-is computed last, over the MAC too, so a receiver checks DLC and CHECKSUM first (a
-transmission error), then the MAC (an attacker), then COUNTER and ranges: a forged or
-replayed frame never touches the receiver's COUNTER state.
+is computed last, over the MAC too. A receiver checks the MAC before COUNTER and ranges
+(``Receiver.forged``): a frame that fails it is an attacker's if its DLC and CHECKSUM hold, a
+transmission error if not; so a forged or replayed frame never touches the receiver's
+COUNTER state.
 
 Freshness on receive: the full value is rebuilt from the 8 bits as the smallest value above
 the last accepted one with those low bits; a MAC that fails there is tried in the next
