@@ -4,8 +4,10 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+SIM_ARGS := --route full_road_section --mode auto --seed 1     # the main job's case
 
-.PHONY: setup run test test-fast lint bench tables tables-check clean
+.PHONY: setup run test test-fast lint bench tables tables-check clean \
+        vcan-setup vcan-run vcan-shell vcan-test
 
 setup: $(STAMP)
 
@@ -16,7 +18,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 run: $(STAMP)
-	$(PY) -m hil run --route full_road_section --mode auto --seed 1 --pace lockstep --out out/run
+	$(PY) -m hil run $(SIM_ARGS) --pace lockstep --out out/run
 
 # the whole suite: the layer contracts, then every test (HIL, golden traces and slow ones too)
 test: lint
@@ -40,6 +42,40 @@ tables: $(STAMP)
 
 tables-check: $(STAMP)
 	$(PY) -m tools.tables --out c/generated --check
+
+# Real SocketCAN in User-mode Linux (hil/vcan.py; docs/vcan.md): the bench on vcan0 in a real
+# kernel where the host's has no CAN. vcan-setup installs the Debian packages (as root).
+VCAN_PKGS := user-mode-linux can-utils iproute2
+
+vcan-setup:
+	@if command -v linux.uml >/dev/null && command -v candump >/dev/null && command -v ip >/dev/null; then \
+	  echo "vcan-setup: User-mode Linux and can-utils are installed"; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  apt-get install -y --no-install-recommends $(VCAN_PKGS) >/dev/null || \
+	  { apt-get update -qq && apt-get install -y --no-install-recommends $(VCAN_PKGS); }; \
+	else \
+	  echo "vcan-setup: as root, type: apt-get install -y $(VCAN_PKGS)"; exit 2; \
+	fi
+
+# the make-run drive on socketcan vcan0 in UML, candump -L vcan0 recording beside it; then
+# candump's frames against bus.log's, and the trace against hil sim's of the same case
+vcan-run: $(STAMP) vcan-setup
+	rm -rf out/vcan
+	$(PY) -m hil vcan --timeout 1800 --candump out/vcan/candump.log -- \
+	  $(PY) -m hil run $(SIM_ARGS) --pace lockstep -i socketcan -c vcan0 --out out/vcan
+	$(PY) -m hil logdiff out/vcan/candump.log out/vcan/bus.log
+	$(PY) -m hil sim $(SIM_ARGS) --key-file out/vcan/secoc.key --out out/vcan/sim --json >/dev/null
+	@$(PY) -c 'import json, sys; a, b = (json.load(open(f))["trace_sha256"] for f in sys.argv[1:]); \
+	  print(f"trace {a[:16]} on vcan0, {b[:16]} in hil sim:", "the same" if a == b else "DIFFERENT"); \
+	  sys.exit(a != b)' out/vcan/report.json out/vcan/sim/report.json
+
+# a shell in UML with vcan0 up: hil run and candump vcan0 side by side, as on any host with vcan
+vcan-shell: $(STAMP) vcan-setup
+	$(PY) -m hil vcan
+
+# the tests that make sense on vcan0 (marker vcan), in UML
+vcan-test: $(STAMP) vcan-setup
+	$(PY) -m hil vcan --timeout 2400 -- $(PY) -m pytest -q -p no:cacheprovider -m vcan
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

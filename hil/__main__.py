@@ -5,6 +5,8 @@
     python -m hil sim --route full_road_section --mode auto --seed 1 [--controller C] [--json]
     python -m hil drive --route full_road_section --seed 1 [--out DIR] [--json]
     python -m hil routes
+    python -m hil vcan [-- COMMAND ...]      (User-mode Linux with vcan0 up; hil/vcan.py)
+    python -m hil logdiff CANDUMP.log BUS.log [--json]
 """
 
 from __future__ import annotations
@@ -17,6 +19,13 @@ from hil.cli import (add_design_argument, add_json_argument, add_vehicle_argumen
 
 
 def main(argv: list[str] | None = None) -> int:
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["vcan"]:        # (its own parser: everything after it may be a command)
+        from hil import vcan
+
+        return vcan.main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m hil", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -33,6 +42,14 @@ def main(argv: list[str] | None = None) -> int:
     add_vehicle_argument(p)
     add_json_argument(p)
     sub.add_parser("routes", help="list the shipped routes")
+    sub.add_parser("vcan", help="run a command (or a shell) in User-mode Linux with SocketCAN "
+                                "and vcan0 up (python -m hil vcan --help)", add_help=False)
+    p = sub.add_parser("logdiff", help="compare two candump logs frame by frame (IDs, "
+                                       "payloads, order; timestamps aside); exit 1 if they "
+                                       "differ")
+    p.add_argument("reference", metavar="LOG")
+    p.add_argument("other", metavar="LOG")
+    add_json_argument(p)
     p = sub.add_parser("keygen", help="write a new SecOC key file (16 random bytes, mode 0600)")
     p.add_argument("file", metavar="FILE")
     p = sub.add_parser("sim", help="software-in-the-loop: the whole ECU against the plant, "
@@ -88,6 +105,18 @@ def main(argv: list[str] | None = None) -> int:
             fail(f"{args.file}: {exc.strerror or exc}")
         print(f"wrote {args.file} (AES-128 key, mode 0600)")
         return 0
+    if args.command == "logdiff":
+        import json
+
+        from hil.buslog import compare, render_compare
+        from hil.cli import fail
+
+        try:
+            c = compare(args.reference, args.other)
+        except (OSError, ValueError) as exc:
+            fail(f"cannot read the logs: {exc}")
+        print(json.dumps(c, indent=1) if args.json else render_compare(c))
+        return 0 if c["equal"] else 1
     if args.command == "routes":
         from hil.road import load_route, shipped_routes
 
