@@ -14,6 +14,7 @@ import os
 import select
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -51,6 +52,78 @@ def kernel_has_vcan(channel: str = "vcan0") -> bool:
         return state.read_text().strip() in ("up", "unknown")
     except OSError:
         return False
+
+
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+SO_MEMINFO = 55                 # u32[SK_MEMINFO_VARS]; index 8: SK_MEMINFO_DROPS
+SK_MEMINFO_DROPS = 8
+TAP_RCVBUF = 32 << 20       # the logger's socket buffer on socketcan (~100k frames queued)
+_CAN_FRAME = struct.Struct("=IB3x8s")       # struct can_frame (classic CAN, 16 bytes)
+
+
+class SocketcanTap:
+    """The bench's own receive-only socket on a SocketCAN channel (the logger's): a raw
+    CAN socket with a large receive buffer (``SO_RCVBUFFORCE`` where allowed, else
+    ``SO_RCVBUF`` up to the system's ``net.core.rmem_max``) and the kernel's drop counter,
+    so a frame the kernel had to drop because the logger fell behind is counted
+    (``dropped``), never silently missing. The counter is the socket's ``sk_drops``: read
+    with ``SO_MEMINFO`` (now), and carried by every received frame with ``SO_RXQ_OVFL`` (as
+    it was when that frame was queued, so the frames already queued when the drops began
+    say 0). python-can's socketcan bus cannot carry it (its receive path accepts one control
+    message only), hence this class; it offers the ``recv``/``shutdown`` the logger uses."""
+
+    def __init__(self, channel: str, rcvbuf: int = TAP_RCVBUF):
+        self.channel = channel
+        self.sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        try:
+            try:
+                self.sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, rcvbuf)
+            except PermissionError:
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+            self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+            self.sock.bind((channel,))
+        except OSError as exc:
+            self.sock.close()
+            raise BusError(f"cannot listen on socketcan {channel}: "
+                           f"{exc.strerror or exc}") from None
+        self.rcvbuf = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        self._seen_drops = 0                # the latest SO_RXQ_OVFL value
+        self._final_drops = 0
+        self._cmsg = socket.CMSG_SPACE(4)
+
+    @property
+    def dropped(self) -> int:
+        """Frames the kernel dropped at this socket so far (its receive queue was full); after
+        :meth:`shutdown`, the count when it was closed."""
+        if self.sock.fileno() < 0:
+            return self._final_drops
+        try:
+            info = self.sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * 16)
+            now = struct.unpack_from("=9I", info)[SK_MEMINFO_DROPS]
+        except (OSError, struct.error):
+            now = 0
+        return max(now, self._seen_drops)
+
+    def recv(self, timeout: Optional[float] = None) -> Optional[can.Message]:
+        if not select.select([self.sock], [], [], timeout)[0]:
+            return None
+        raw, ancillary, _flags, _addr = self.sock.recvmsg(_CAN_FRAME.size, self._cmsg)
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= 4:
+                self._seen_drops = struct.unpack("=I", data[:4])[0]     # cumulative
+        can_id, dlc, data = _CAN_FRAME.unpack(raw)
+        extended = bool(can_id & socket.CAN_EFF_FLAG)
+        return can.Message(
+            timestamp=time.time(), channel=self.channel, is_extended_id=extended,
+            arbitration_id=can_id & (socket.CAN_EFF_MASK if extended else socket.CAN_SFF_MASK),
+            is_remote_frame=bool(can_id & socket.CAN_RTR_FLAG),
+            is_error_frame=bool(can_id & socket.CAN_ERR_FLAG), data=data[:min(dlc, 8)])
+
+    def shutdown(self) -> None:
+        if self.sock.fileno() >= 0:
+            self._final_drops = self.dropped
+        self.sock.close()
 
 
 def free_port() -> int:

@@ -387,7 +387,7 @@ def _judge_attack(w: Window, a: list, seg: slice, plant_tr: dict, enable, fallba
     stopped = int(rejected[seg].sum()) if w.name != "external_sender" else int(
         rejected[seg.start:].sum())
     note = f"{stopped} of {sent} rejected by the plant's SecOC check"
-    if w.name == "external_sender":
+    if w.name == "external_sender" and hub_log:         # (vcan0: no hub, no hub.log)
         dropped = sum(int(x) for x in _HUB_DROPS.findall(hub_log))
         stopped += dropped
         note = f"{dropped} of {sent} dropped at the hub (read-only client), " + note
@@ -398,10 +398,12 @@ def _judge_attack(w: Window, a: list, seg: slice, plant_tr: dict, enable, fallba
                   failsafe_ticks=int(np.count_nonzero(~enable[seg])), note=note)
 
 
-def _attacker(windows: list[Window], spec, marks: dict, stop) -> None:
+def _attacker(windows: list[Window], spec, marks: dict, stop, on_bus: dict) -> None:
     """The campaign's outside bus client: read-only (no credentials), it counts the plant's
     ticks from the bus and, in its windows, sends a forged ACTUATOR_CMD with every tick
-    (``external_sender``) or a malformed message to the hub (``hub_message``)."""
+    (``external_sender``) or a malformed message to the hub (``hub_message``). ``on_bus``
+    counts the frames it put on the bus itself (vcan0: no hub drops them), so the run's
+    check of frames on the bus against frames sent counts them too."""
     import can
 
     from hil.codec import Codec
@@ -415,7 +417,7 @@ def _attacker(windows: list[Window], spec, marks: dict, stop) -> None:
     ticks_ids = [{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
                  for n in ("PLANT_SENSORS", "SIM_TICK")]
     bus = spec.open(can_filters=ticks_ids)
-    k = 0
+    k = -1                  # the plant's tick of the last tick frame seen (the first is tick 0)
     try:
         while not stop.is_set() and mine:
             msg = bus.recv(0.2)
@@ -433,6 +435,8 @@ def _attacker(windows: list[Window], spec, marks: dict, stop) -> None:
             if w.name == "external_sender":
                 bus.send(can.Message(arbitration_id=ID["ACTUATOR_CMD"], is_extended_id=False,
                                      data=forged_command(codec, k & 0xF, k & 0x3, k)))
+                if spec.interface != "remote":
+                    on_bus["ACTUATOR_CMD"] = on_bus.get("ACTUATOR_CMD", 0) + 1
             else:
                 _malformed_hub_message(spec.channel)
                 mine.pop(0)
@@ -564,13 +568,14 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
         gains=None, design=None, duration=n * dt, out=str(out), pace="lockstep", json=False,
         vehicle=None,
         driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
-        inject=str(plan), key_file=None)
+        inject=str(plan), key_file=None, outside_frames={})
     marks: dict = {}
     stop = threading.Event()
     threads: list = []
 
     def attach(spec):                 # the outside client, once the bus is up
-        t = threading.Thread(target=_attacker, args=(windows, spec, marks, stop), daemon=True)
+        t = threading.Thread(target=_attacker, args=(windows, spec, marks, stop,
+                                                     args.outside_frames), daemon=True)
         t.start()
         threads.append(t)
 

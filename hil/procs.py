@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gc
 import json
+import os
 import signal
 import sys
 import threading
@@ -69,8 +70,9 @@ def node_filters(name: str) -> Optional[list[dict]]:
 def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -> can.BusABC:
     spec, needs_hub = resolve(interface, channel)
     if needs_hub:
-        raise BusError("no CAN bus: this kernel has no vcan0; start the bench with "
-                       "`python -m hil run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
+        which = channel or os.environ.get("CAN_CHANNEL") or "vcan0"
+        raise BusError(f"no CAN bus: this kernel has no {which}; start the bench with `python "
+                       "-m hil run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
     assert spec is not None
     return spec.open(can_filters=node_filters(name), node=DBC_NODE[name])
 

@@ -30,15 +30,16 @@ import numpy as np
 from firmware.params import GRADE_NAMES, MODE_NAMES
 from hil import secoc, sil, verdict
 from hil.auth import SECRET_ENV
-from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, close_bus, die_with_parent,
-                     resolve, rt_of, terminate)
+from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, SocketcanTap, close_bus,
+                     die_with_parent, resolve, rt_of, terminate)
 from hil.buslog import BusLogFile
 from hil.codec import Codec
 from hil.nodes import ID, LockstepClock, message_name
 
 EXIT_NODE = 1
 EXIT_INTERRUPTED = 130
-READY_TIMEOUT_S = 60.0
+READY_IDLE_S = 30.0          # a starting node that uses no CPU for this long is stuck
+READY_CAP_S = 900.0          # and none may take longer than this to start (cold caches, UML)
 STALL_S = 20.0               # no progress for this long stops the run (--stall-s)
 NODES = ("ecu", "app", "plant")
 
@@ -71,14 +72,27 @@ class Node:
             else:
                 self.lines.append(line)
 
-    def wait_ready(self, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
+    def wait_ready(self, idle_s: float = READY_IDLE_S, cap_s: float = READY_CAP_S) -> None:
+        """Until the node prints READY. Starting means importing and loading (or, on a cold
+        cache, compiling) the numba kernels, which takes from a second to minutes (three
+        nodes compiling on UML's one CPU); so the wait is on progress, not a fixed time: the
+        node fails when its CPU time stops advancing for ``idle_s`` (it is stuck, e.g. on a
+        bus that never answers) or after ``cap_s`` in all."""
+        start = time.monotonic()
+        cpu, since = _cpu_time(self.proc.pid), start
         while not self.ready.wait(0.05):
             if self.proc.poll() is not None:
                 raise NodeFailure(f"node {self.name} exited at start with code "
                                   f"{self.proc.returncode}: {self.last_error()}")
-            if time.monotonic() > deadline:
-                raise NodeFailure(f"node {self.name} not ready within {timeout_s:g} s")
+            now = time.monotonic()
+            used = _cpu_time(self.proc.pid)
+            if used > cpu:
+                cpu, since = used, now
+            if now - since > idle_s:
+                raise NodeFailure(f"node {self.name} not ready: no progress (CPU time) for "
+                                  f"{idle_s:g} s after {now - start:.0f} s")
+            if now - start > cap_s:
+                raise NodeFailure(f"node {self.name} not ready within {cap_s:g} s")
 
     def last_error(self) -> str:
         if not self._err.closed:
@@ -104,6 +118,16 @@ class Node:
                 self.proc.wait(5.0)
         self._err.close()
         return self.proc.returncode
+
+
+def _cpu_time(pid: int) -> float:
+    """User + system CPU seconds of a process (/proc), 0.0 when unreadable."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        fields = stat[stat.rindex(")") + 2:].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
 
 
 class Logger(threading.Thread):
@@ -153,6 +177,18 @@ class Logger(threading.Thread):
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
             self.log.flush()
+
+    @property
+    def kernel_drops(self) -> Optional[int]:
+        """Frames the kernel dropped at the logger's socket (socketcan), None elsewhere."""
+        return getattr(self.bus, "dropped", None)
+
+    def drops_said(self) -> str:
+        d = self.kernel_drops
+        if d is None:
+            return ""
+        return (f" (the kernel dropped {d} at the logger's socket, whose buffer is "
+                f"{self.bus.rcvbuf} bytes)" if d else " (the kernel reports no drop)")
 
     def seen(self, name: str) -> float:
         return self.last_seen.get(ID[name], self.since)
@@ -341,7 +377,7 @@ def run(args, on_bus=None) -> int:
         assert spec is not None
         say(f"bus: {spec.interface} {spec.channel}  (watch: python -m can.viewer -i "
             f"{spec.interface} -c {spec.channel})")
-        log_bus = spec.open()
+        log_bus = SocketcanTap(spec.channel) if spec.interface == "socketcan" else spec.open()
         logger = Logger(log_bus, BusLogFile(out / "bus.log"), args.pace == "lockstep", dt,
                         Codec())
         logger.start()
@@ -351,9 +387,9 @@ def run(args, on_bus=None) -> int:
         for name in ("ecu", "app"):
             nodes[name] = Node(name, argvs[name], out, env)
         for name in ("ecu", "app"):
-            nodes[name].wait_ready(READY_TIMEOUT_S)
+            nodes[name].wait_ready()
         nodes["plant"] = Node("plant", argvs["plant"], out, env)
-        nodes["plant"].wait_ready(READY_TIMEOUT_S)
+        nodes["plant"].wait_ready()
         _watch(nodes, hub, logger, n, dt, route, args)
         for name in ("ecu", "app"):
             rc = nodes[name].stop()
@@ -361,9 +397,11 @@ def run(args, on_bus=None) -> int:
                 raise NodeFailure(f"node {name} exited with code {rc}: "
                                   f"{nodes[name].last_error()}")
         summaries = {name: json.loads((out / f"{name}.json").read_text()) for name in NODES}
-        sent = sum(sum(s["frames_sent"].values()) for s in summaries.values())
+        sent = sum(sum(s["frames_sent"].values()) for s in summaries.values()) + sum(
+            (getattr(args, "outside_frames", None) or {}).values())
         if not logger.wait_for(sent, 10.0):
-            raise NodeFailure(f"bus.log holds {logger.log.count} frames, the nodes sent {sent}")
+            raise NodeFailure(f"bus.log holds {logger.log.count} frames, the nodes sent {sent}"
+                              + logger.drops_said())
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
         what = "" if signum == signal.SIGINT else f" ({signal.Signals(signum).name})"
@@ -429,6 +467,9 @@ def _report(out: Path, cfg, route, args, n: int, dt: float, summaries: dict, log
     report["bench"] = {"harness": "hil", "pace": args.pace, "bus": spec.interface,
                        "frames_logged": logger.log.count, "wall_s": wall,
                        "rtf": trace.segment.size * dt / wall}
+    if logger.kernel_drops is not None:         # socketcan: the logger's own socket
+        report["bench"].update(logger_kernel_drops=logger.kernel_drops,
+                               logger_rcvbuf_bytes=logger.bus.rcvbuf)
     if args.pace == "realtime":
         report["bench"]["realtime"] = {k: summaries["plant"][k] for k in (
             "missed_deadlines", "missed_deadline_ratio", "lag_p50_us", "lag_p99_us",
@@ -520,7 +561,7 @@ def run_checks(report: dict, summaries: dict, logged_by_id: dict, n: int, dt: fl
         pace=args.pace, injected=bool(getattr(args, "inject", None)),
         lost_sensor_frames=lost, missed_deadlines=plant.get("missed_deadlines", 0),
         fault_ticks=fault_ticks,
-        limits=verdict.limits_of(args))
+        limits=verdict.limits_of(args), outside_frames=getattr(args, "outside_frames", None))
 
 
 def _stopped(pid: int) -> bool:

@@ -86,10 +86,13 @@ def exit_code(report: dict) -> int:
 def run_checks(report: dict, *, expected_ticks: int, dt_s: float, ticks: dict[str, int],
                bus_frames: dict[str, int], pace: str = "lockstep", injected: bool = False,
                lost_sensor_frames: int = 0, missed_deadlines: int = 0, fault_ticks: int = 0,
-               limits: Optional[Limits] = None) -> list[Check]:
+               limits: Optional[Limits] = None,
+               outside_frames: Optional[dict[str, int]] = None) -> list[Check]:
     """The checks of one drive from its report (``hil.sil.build_report``). ``ticks``: per node
     (PLANT, ECU) the ticks it ran; ``bus_frames``: per message name the frames seen on the bus;
-    ``fault_ticks``: ECU ticks with a fault bit set."""
+    ``fault_ticks``: ECU ticks with a fault bit set; ``outside_frames``: per message name the
+    frames a known outside sender put on the bus (the fault campaign's attacker on vcan0,
+    where no hub drops them)."""
     limits = limits or Limits()
     out = [check(f"ticks.{node}", int(n), "==", expected_ticks) for node, n in ticks.items()]
     out.append(check("span_s", report["duration_s"], "==", expected_ticks * dt_s))
@@ -97,6 +100,8 @@ def run_checks(report: dict, *, expected_ticks: int, dt_s: float, ticks: dict[st
     for per_node in report["frames_sent"].values():
         for name, n in per_node.items():
             sent[name] = sent.get(name, 0) + n
+    for name, n in (outside_frames or {}).items():
+        sent[name] = sent.get(name, 0) + n
     for name in sorted(set(sent) | set(bus_frames)):
         out.append(check(f"bus.{name}", bus_frames.get(name, 0), "==", sent.get(name, 0)))
     if pace == "lockstep":
