@@ -4,7 +4,8 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-SIM_ARGS := --route full_road_section --mode auto --seed 1     # the main job's case
+# the main job's case (make run, make vcan-run)
+SIM_ARGS := --route full_road_section --mode auto --seed 1
 
 .PHONY: setup run test test-fast lint bench tables tables-check clean \
         vcan-setup vcan-run vcan-shell vcan-test

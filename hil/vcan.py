@@ -13,13 +13,13 @@ working directory, writes its exit status for the host and powers the machine of
 after it ends.
 
 The command's stdout and stderr come back on this process's (through UML consoles 1 and 2;
-each is a terminal in the guest only when it is one here); the
-kernel's own messages go to a boot log, shown when something went wrong. The exit status is the
-command's; 124 when ``--timeout`` ran out, 130 on Ctrl-C (143 on SIGTERM, 129 on SIGHUP),
-125 when UML ended without one (its
-boot log's tail is printed), 2 when UML, its modules or the command are missing (one line and
-the command that installs them). UML runs in its own process group; on every way out the whole
-group is ended by its ID (SIGTERM, then SIGKILL), so no process outlives the launcher, and
+each is a terminal in the guest only when it is one here); the kernel's own messages go to a
+boot log, shown when something went wrong. The exit status is the command's; 124 when
+``--timeout`` ran out, 130 on Ctrl-C (143 on SIGTERM, 129 on SIGHUP), 125 when UML ended
+without one (the boot log's tail is printed), 2 when UML, its CAN modules or (for
+``--candump``) can-utils are missing (one line with the command that installs them). UML runs
+in its own process group; on every way out the whole group is ended by its ID (SIGTERM, then
+SIGKILL), and UML gets SIGTERM should this process die, so nothing outlives the launcher;
 nothing is mounted on the host. The run's files (a 0700 directory with the command, its
 environment and the exit status) are removed at the end.
 
@@ -151,6 +151,31 @@ def _run_dir() -> Path:
     return Path(tempfile.mkdtemp(prefix=f"hil-vcan-{os.getpid()}-", dir=base))
 
 
+def mem_bytes(mem: str) -> int:
+    """UML's ``mem=`` value (``512M``, ``2G``, bytes) in bytes; VcanError when it is not one."""
+    text = mem.strip().upper()
+    scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(text[-1:], 1)
+    try:
+        n = int(text[:-1] if scale > 1 else text) * scale
+    except ValueError:
+        n = 0
+    if not (64 << 20 <= n <= 64 << 30):
+        raise VcanError(f"--mem must be 64M to 64G, like 2G; got {mem!r}")
+    return n
+
+
+def _memory_dir(mem: str) -> str:
+    """Where UML keeps its memory file (TMPDIR): /dev/shm when it has room for it (a file on
+    a disk would make every guest page a disk page), else the temporary directory."""
+    try:
+        st = os.statvfs("/dev/shm")
+        if os.access("/dev/shm", os.W_OK) and st.f_bavail * st.f_frsize > mem_bytes(mem):
+            return "/dev/shm"
+    except OSError:
+        pass
+    return tempfile.gettempdir()
+
+
 def _boot_tail(path: Path, n: int = 12) -> str:
     try:
         lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
@@ -204,6 +229,7 @@ def _end_group(proc: subprocess.Popen) -> None:
 def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEFAULT_MEM,
         interactive: bool = False, quiet: bool = False, candump: Optional[str] = None) -> int:
     """Boot UML, run ``command`` in it with vcan0 up, return its exit status (see the module)."""
+    mem_bytes(mem)
     exe, version, moddir = find_uml()
     if candump is not None:
         if shutil.which("candump") is None:
@@ -230,7 +256,7 @@ def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEF
         env = dict(os.environ)
         if shim is not None:
             env["LD_PRELOAD"] = str(shim)
-        env["TMPDIR"] = "/dev/shm" if os.access("/dev/shm", os.W_OK) else str(rundir)
+        env["TMPDIR"] = _memory_dir(mem)
         stdin_fd = os.dup(0) if interactive else None
         out_fd, err_fd = os.dup(1), os.dup(2)
         cons_in = f"fd:{stdin_fd}" if stdin_fd is not None else "null"

@@ -77,3 +77,10 @@ def test_the_launcher_without_uml_says_what_to_install(tmp_path):
     proc = launch("--", "true", env=env)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "apt-get install" in proc.stderr
+
+
+@pytest.mark.parametrize("args", [("--mem", "1X"), ("--mem", "9"), ("--timeout", "0")])
+def test_the_launcher_refuses_bad_options_in_one_line(args):
+    proc = launch(*args, "--", "true")
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: ")
