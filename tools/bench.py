@@ -90,10 +90,19 @@ def hil_run(pace: str, duration_s: float | None) -> dict:
                "auto", "--seed", "1", "--pace", pace, "--out", tmp, "--json"]
         if duration_s is not None:
             cmd += ["--duration", repr(duration_s)]
+        if pace == "realtime":
+            # the deadline figures are this benchmark's result, judged against its own goal
+            # (GOALS); the run's user-facing timing limits must not abort it (a loaded host
+            # misses more deadlines), every other check of the run's verdict still does
+            cmd += ["--max-missed-ratio", "1", "--max-lost-ratio", "1"]
         res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         if res.returncode != 0:
-            raise RuntimeError(f"hil run --pace {pace} failed ({res.returncode}): "
-                               f"{res.stderr.strip().splitlines()[-1:]}")
+            try:
+                failed = [f"{c['name']} = {c['value']} ({c['limit']})"
+                          for c in json.loads(res.stdout)["checks"] if not c["ok"]]
+            except (ValueError, KeyError, TypeError):
+                failed = res.stderr.strip().splitlines()[-1:]
+            raise RuntimeError(f"hil run --pace {pace} failed ({res.returncode}): {failed}")
         return json.loads(res.stdout)["bench"]
 
 
