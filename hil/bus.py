@@ -55,7 +55,6 @@ def kernel_has_vcan(channel: str = "vcan0") -> bool:
 
 
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
-SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 SO_MEMINFO = 55                 # u32[SK_MEMINFO_VARS]; index 8: SK_MEMINFO_DROPS
 SK_MEMINFO_DROPS = 8
 TAP_RCVBUF = 32 << 20       # the logger's socket buffer on socketcan (~100k frames queued)
@@ -67,11 +66,11 @@ class SocketcanTap:
     CAN socket with a large receive buffer (``SO_RCVBUFFORCE`` where allowed, else
     ``SO_RCVBUF`` up to the system's ``net.core.rmem_max``) and the kernel's drop counter,
     so a frame the kernel had to drop because the logger fell behind is counted
-    (``dropped``), never silently missing. The counter is the socket's ``sk_drops``: read
-    with ``SO_MEMINFO`` (now), and carried by every received frame with ``SO_RXQ_OVFL`` (as
-    it was when that frame was queued, so the frames already queued when the drops began
-    say 0). python-can's socketcan bus cannot carry it (its receive path accepts one control
-    message only), hence this class; it offers the ``recv``/``shutdown`` the logger uses."""
+    (``dropped``), never silently missing. The counter is the socket's ``sk_drops``, read
+    with ``SO_MEMINFO`` when asked (``SO_RXQ_OVFL`` would carry it on every frame, but as it
+    was when that frame was queued: the frames already queued when the drops began say 0,
+    and nothing says the drops after the last frame). python-can's socketcan bus offers
+    neither, hence this class; it offers the ``recv``/``shutdown`` the logger uses."""
 
     def __init__(self, channel: str, rcvbuf: int = TAP_RCVBUF):
         self.channel = channel
@@ -81,38 +80,28 @@ class SocketcanTap:
                 self.sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, rcvbuf)
             except PermissionError:
                 self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-            self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
             self.sock.bind((channel,))
+            self._final_drops = self._drops()       # (0; a kernel that cannot count: refused)
         except OSError as exc:
             self.sock.close()
             raise BusError(f"cannot listen on socketcan {channel}: "
                            f"{exc.strerror or exc}") from None
         self.rcvbuf = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-        self._seen_drops = 0                # the latest SO_RXQ_OVFL value
-        self._final_drops = 0
-        self._cmsg = socket.CMSG_SPACE(4)
+
+    def _drops(self) -> int:
+        info = self.sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * 16)
+        return struct.unpack_from("=9I", info)[SK_MEMINFO_DROPS]
 
     @property
     def dropped(self) -> int:
         """Frames the kernel dropped at this socket so far (its receive queue was full); after
         :meth:`shutdown`, the count when it was closed."""
-        if self.sock.fileno() < 0:
-            return self._final_drops
-        try:
-            info = self.sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * 16)
-            now = struct.unpack_from("=9I", info)[SK_MEMINFO_DROPS]
-        except (OSError, struct.error):
-            now = 0
-        return max(now, self._seen_drops)
+        return self._drops() if self.sock.fileno() >= 0 else self._final_drops
 
     def recv(self, timeout: Optional[float] = None) -> Optional[can.Message]:
         if not select.select([self.sock], [], [], timeout)[0]:
             return None
-        raw, ancillary, _flags, _addr = self.sock.recvmsg(_CAN_FRAME.size, self._cmsg)
-        for level, kind, data in ancillary:
-            if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= 4:
-                self._seen_drops = struct.unpack("=I", data[:4])[0]     # cumulative
-        can_id, dlc, data = _CAN_FRAME.unpack(raw)
+        can_id, dlc, data = _CAN_FRAME.unpack(self.sock.recv(_CAN_FRAME.size))
         extended = bool(can_id & socket.CAN_EFF_FLAG)
         return can.Message(
             timestamp=time.time(), channel=self.channel, is_extended_id=extended,
@@ -122,7 +111,7 @@ class SocketcanTap:
 
     def shutdown(self) -> None:
         if self.sock.fileno() >= 0:
-            self._final_drops = self.dropped
+            self._final_drops = self._drops()
         self.sock.close()
 
 

@@ -120,13 +120,21 @@ class Node:
         return self.proc.returncode
 
 
-def _cpu_time(pid: int) -> float:
-    """User + system CPU seconds of a process (/proc), 0.0 when unreadable."""
+def _proc_stat(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (state first); [] if unreadable."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
-        fields = stat[stat.rindex(")") + 2:].split()
+        return stat[stat.rindex(")") + 2:].split()
+    except (OSError, ValueError):
+        return []
+
+
+def _cpu_time(pid: int) -> float:
+    """User + system CPU seconds of a process, 0.0 when unreadable."""
+    fields = _proc_stat(pid)
+    try:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
+    except (ValueError, IndexError):
         return 0.0
 
 
@@ -566,11 +574,7 @@ def run_checks(report: dict, summaries: dict, logged_by_id: dict, n: int, dt: fl
 
 def _stopped(pid: int) -> bool:
     """The process is stopped (SIGSTOP, a debugger): state T or t in /proc."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2:][:1] in ("T", "t")
+    return _proc_stat(pid)[:1] in (["T"], ["t"])
 
 
 def _watch(nodes: dict, hub: Optional[Hub], logger: Logger, n: int, dt: float, route,

@@ -66,8 +66,9 @@ class VcanError(RuntimeError):
 
 # -- host side ------------------------------------------------------------------------------
 
-def find_uml() -> tuple[Path, str, Path]:
-    """(linux.uml, its kernel version, its modules directory), or VcanError."""
+def find_uml() -> tuple[Path, str, list[Path]]:
+    """(linux.uml, its kernel version, the CAN modules' .ko files in load order), or
+    VcanError."""
     exe = os.environ.get(UML_ENV) or shutil.which(UML) or ""
     if not exe or not os.access(exe, os.X_OK):
         raise VcanError(f"User-mode Linux ({UML}) is not installed; as root: {INSTALL} "
@@ -78,36 +79,42 @@ def find_uml() -> tuple[Path, str, Path]:
     except (OSError, subprocess.SubprocessError, IndexError):
         raise VcanError(f"{exe} --version failed; is it a User-mode Linux kernel?") from None
     moddir = MODULES_ROOT / version
-    missing = [m for m in CAN_MODULES if m not in module_paths(moddir)]
+    deps = modules_dep(moddir)
+    by_name = module_names(deps)
+    missing = [m for m in CAN_MODULES if m not in by_name]
     if missing:
         raise VcanError(f"UML {version} has no module(s) {', '.join(missing)} under {moddir}; "
                         f"reinstall: {INSTALL}")
-    return Path(exe), version, moddir
+    return Path(exe), version, [moddir / rel for rel in load_order(deps, by_name)]
 
 
-def module_paths(moddir: Path) -> dict[str, Path]:
-    """Module name -> .ko path, from modules.dep (names with '-' and '_' both)."""
+def modules_dep(moddir: Path) -> dict[str, list[str]]:
+    """modules.dep: each module's path (relative to ``moddir``) -> the paths it depends on;
+    empty when the file cannot be read."""
     try:
         lines = (moddir / "modules.dep").read_text().splitlines()
     except OSError:
         return {}
-    out = {}
+    deps = {}
     for line in lines:
-        path = line.split(":", 1)[0].strip()
-        if path:
-            name = Path(path).name.split(".ko")[0]
-            out[name] = out[name.replace("_", "-")] = moddir / path
+        mod, sep, rest = line.partition(":")
+        if sep and mod.strip():
+            deps[mod.strip()] = rest.split()
+    return deps
+
+
+def module_names(deps: dict[str, list[str]]) -> dict[str, str]:
+    """Module name (with '-' and '_' both) -> its path in ``deps``."""
+    out = {}
+    for rel in deps:
+        name = Path(rel).name.split(".ko")[0]
+        out[name] = out[name.replace("_", "-")] = rel
     return out
 
 
-def load_order(moddir: Path, names=CAN_MODULES) -> list[Path]:
-    """The .ko files to insert for ``names``, dependencies first (modules.dep)."""
-    deps: dict[str, list[str]] = {}
-    for line in (moddir / "modules.dep").read_text().splitlines():
-        if ":" in line:
-            mod, rest = line.split(":", 1)
-            deps[mod.strip()] = rest.split()
-    paths = module_paths(moddir)
+def load_order(deps: dict[str, list[str]], by_name: dict[str, str],
+               names=CAN_MODULES) -> list[str]:
+    """The module paths to insert for ``names``, dependencies first."""
     order: list[str] = []
 
     def visit(rel: str) -> None:
@@ -117,8 +124,8 @@ def load_order(moddir: Path, names=CAN_MODULES) -> list[Path]:
             order.append(rel)
 
     for name in names:
-        visit(str(paths[name].relative_to(moddir)))
-    return [moddir / rel for rel in order]
+        visit(by_name[name])
+    return order
 
 
 def shim_path() -> Optional[Path]:
@@ -194,15 +201,6 @@ def _interrupt(signum, _frame):
     raise _Signalled(signum)
 
 
-def _die_with_parent() -> None:
-    """In the UML child: SIGTERM when the launcher dies (even by SIGKILL), so UML, which
-    ends its own processes on SIGTERM, never outlives it."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)      # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
 def _end_group(proc: subprocess.Popen) -> None:
     """Stop UML and everything it started: its process group, by ID (it is the group leader,
     started here with a new session), SIGTERM first, SIGKILL after the grace time."""
@@ -229,8 +227,10 @@ def _end_group(proc: subprocess.Popen) -> None:
 def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEFAULT_MEM,
         interactive: bool = False, quiet: bool = False, candump: Optional[str] = None) -> int:
     """Boot UML, run ``command`` in it with vcan0 up, return its exit status (see the module)."""
+    from hil.bus import die_with_parent
+
     mem_bytes(mem)
-    exe, version, moddir = find_uml()
+    exe, version, modules = find_uml()
     if candump is not None:
         if shutil.which("candump") is None:
             raise VcanError(f"--candump needs can-utils; as root: {INSTALL}")
@@ -241,7 +241,7 @@ def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEF
     try:
         os.chmod(rundir, 0o700)
         spec = {"argv": command, "cwd": os.getcwd(), "env": dict(os.environ),
-                "modules": [str(p) for p in load_order(moddir)], "interactive": interactive,
+                "modules": [str(p) for p in modules], "interactive": interactive,
                 "tty": [os.isatty(1), os.isatty(2)], "candump": candump,
                 "rc": str(rundir / "rc")}
         spec_path = rundir / "spec.json"
@@ -271,7 +271,8 @@ def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEF
             proc = subprocess.Popen(
                 argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
                 pass_fds=[fd for fd in (stdin_fd, out_fd, err_fd) if fd is not None],
-                start_new_session=True, preexec_fn=_die_with_parent)
+                start_new_session=True,
+                preexec_fn=die_with_parent)     # (UML ends its own processes on SIGTERM)
         for fd in (stdin_fd, out_fd, err_fd):
             if fd is not None:
                 os.close(fd)

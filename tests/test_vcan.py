@@ -113,7 +113,7 @@ def test_the_fault_campaign_on_vcan0_gives_the_hub_table(tmp_path):
 
 
 def test_the_logger_counts_what_the_kernel_drops():
-    """A logger that falls behind loses frames in the kernel: SO_RXQ_OVFL counts them, so
+    """A logger that falls behind loses frames in the kernel: its drop counter counts them, so
     received + dropped is every frame sent (here a tap with the smallest buffer, not read
     while 3,000 frames are sent)."""
     tap = SocketcanTap("vcan0", rcvbuf=1)          # (the kernel rounds it up to its minimum)
