@@ -134,7 +134,12 @@ def test_realtime_ecu_detects_a_silent_plant_and_tells_the_driver(tmp_path):
         plant = next((pid for pid, c in kids.items() if " plant " in c), None)
         time.sleep(0.1)
     assert plant is not None, "the bench did not start"
-    time.sleep(2.5)
+    # stop it once it drives (about a second of frames in the log, flushed every 0.5 s), not
+    # a fixed time after its process appeared: under load its start-up can outlast that
+    log = tmp_path / "bus.log"
+    while time.monotonic() < deadline and not (log.exists() and log.stat().st_size > 40_000):
+        time.sleep(0.05)
+    assert log.stat().st_size > 40_000, "the plant did not start driving"
     t_stop = time.time()
     os.kill(plant, signal.SIGSTOP)                     # our own child, by PID
     time.sleep(0.3)
