@@ -21,14 +21,12 @@ regenerating gives the same bytes.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calib.ecu_params import build, default_gains_path
+from calib.ecu_params import GENERATOR, build, inputs_digest  # noqa: F401 (re-exported)
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
 from firmware.fixedpoint import INT32_MIN, best_frac, to_fixed
@@ -38,8 +36,6 @@ from firmware.params import CTRL_NAMES, MODE_NAMES, EcuParams
 if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
     from hil.config import VehicleConfig
 
-GENERATOR = "tools/tables.py (python -m tools.tables)"
-GENERATOR_VERSION = 1
 HEADER = "ecu_tables.h"
 SOURCE = "ecu_tables.c"
 
@@ -157,17 +153,6 @@ def _emit_fx(e: Emitter, T: fixed.FxTables) -> None:
             e.array(name, [x.value for x in v], [x.m for x in v], [x.frac for x in v])
         else:
             raise TypeError(f"{name}: cannot export {type(v).__name__}")
-
-
-def inputs_digest(cfg: VehicleConfig, gains_file: Path | None, opts: DesignOptions) -> str:
-    h = hashlib.sha256()
-    h.update(f"{GENERATOR} v{GENERATOR_VERSION}\n".encode())
-    src = Path(cfg.source)
-    h.update(src.read_bytes() if src.is_file() else repr(cfg).encode())
-    gains = gains_file or default_gains_path(cfg)
-    h.update(Path(gains).read_bytes() if Path(gains).is_file() else b"<tuned at build time>")
-    h.update(json.dumps(dataclasses.asdict(opts), sort_keys=True).encode())
-    return h.hexdigest()
 
 
 def generate(cfg: VehicleConfig, gains_file: Path | None = None,

@@ -36,6 +36,7 @@ class AkfState:
     r: np.ndarray
     b_pow: float              # b^(t+1)
     innovation: np.ndarray
+    hph: np.ndarray               # diag(H P_pred H^T) of the last correction (fault detection)
     guard_hits: int = 0       # how often the R-hat guard acted
     r_scale: np.ndarray | None = None   # outer(sqrt(r_floor), sqrt(r_floor)) (the guard's)
 
@@ -44,7 +45,8 @@ def init(params: AkfParams) -> AkfState:
     m = params.H.shape[0]
     s = np.sqrt(params.r_floor)
     return AkfState(x=np.zeros(5), P=params.p0.copy(), R=params.r0.copy(), r=np.zeros(m),
-                    b_pow=params.forgetting, innovation=np.zeros(m), r_scale=np.outer(s, s))
+                    b_pow=params.forgetting, innovation=np.zeros(m), hph=np.zeros(m),
+                    r_scale=np.outer(s, s))
 
 
 R_CEILING = kern.R_CEILING   # largest R-hat eigenvalue, in units of the floor
@@ -73,7 +75,7 @@ def tick(params: AkfParams, st: AkfState, u_tick: float, road_intensity: float, 
         params.phi, params.gamma, params.q_unit, params.H, params.D, st.P, st.R, st.r, st.x,
         float(u_tick), float(road_intensity), float(ba), float(defl), float(wa), float(u_now),
         params.r_floor, st.r_scale, st.b_pow, params.forgetting, params.adaptive,
-        params.bias_adaptive, st.innovation)
+        params.bias_adaptive, st.innovation, st.hph)
     st.guard_hits += int(hit)
     return finite
 
@@ -93,14 +95,14 @@ def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
     st.b_pow, hit = kern.update_into(
         params.H, params.D, st.P, st.R, st.r, st.x, np.asarray(z, dtype=float), float(u),
         params.r_floor, st.r_scale, st.b_pow, params.forgetting, params.adaptive,
-        params.bias_adaptive, st.innovation)
+        params.bias_adaptive, st.innovation, st.hph)
     st.guard_hits += int(hit)
 
 
 def gain(params: AkfParams, st: AkfState, resid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """From the residual z - H x_pred - D u: adapt the noise estimates, compute the gain K,
     update P (Joseph form). Returns (K, eps); the state update is x += K eps."""
-    K, eps, st.P, st.R, st.r, st.b_pow, hit = kern.gain(
+    K, eps, st.P, st.R, st.r, st.b_pow, hit, st.hph = kern.gain(
         params.H, st.P, st.R, st.r, np.asarray(resid, dtype=float), params.r_floor,
         st.r_scale, st.b_pow, params.forgetting, params.adaptive, params.bias_adaptive)
     st.guard_hits += int(hit)

@@ -11,7 +11,8 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from firmware import adc, akf, grade, modes, safety
+from firmware import adc, akf, diag, grade, modes, safety
+from firmware.diag import dtc, fdi
 from firmware.fixedpoint import round_half_away as rha
 from firmware.params import MODE_ENERGY, EcuParams
 from firmware.path import FixedPath, FloatPath
@@ -60,6 +61,7 @@ class EcuState:
     akf: akf.AkfState
     grade: grade.GradeState
     modes: modes.ModeState
+    diag: diag.DiagState = None      # fault detection, DTC memory, UDS session
     road_per_mps: float = 0.0        # the AKF's road intensity per m/s ...
     road_per_mps_gq: object = None   # ... computed for this G_q object (None: not yet)
     tick: int = -1
@@ -71,7 +73,17 @@ def init(params: EcuParams, path: FloatPath | FixedPath | None = None) -> EcuSta
     integers, ``firmware.fx``, with the tables the calibration builds for it)."""
     path = FloatPath(params) if path is None else path
     return EcuState(params=params, path=path, adc=adc.AdcState(), akf=akf.init(params.akf),
-                    grade=grade.GradeState(), modes=modes.init(params.modes))
+                    grade=grade.GradeState(), modes=modes.init(params.modes),
+                    diag=diag.DiagState())
+
+
+def reset(st: EcuState, path: FloatPath | FixedPath) -> EcuState:
+    """ECU reset (UDS 0x11): the control state starts again with ``path`` (a fresh one), the
+    DTC memory stays (non-volatile) and a new operation cycle begins."""
+    new = init(st.params, path)
+    new.diag.dtc = st.diag.dtc
+    dtc.new_cycle(new.diag.dtc)
+    return new
 
 
 def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
@@ -87,9 +99,14 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     if not finite:
         faults |= safety.FAULT_NONFINITE_ESTIMATE
         path.reset_estimate(st)
-    _, vt, _, zt, zf = st.akf.x.tolist()    # (Python floats: faster arithmetic than numpy's)
-    # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
+    vs, vt, _, zt, zf = st.akf.x.tolist()   # (Python floats: faster arithmetic than numpy's)
     dtd_est = zt - zf
+    # 2b. model-based fault detection: innovation, flatline and actuator tests (uses 1, 2)
+    if not finite:
+        st.diag.fdi.failed = st.diag.fdi.completed = 0
+    elif _fdi(st, inp, defl, dtd_est, i_meas, ba - wa, force_meas, vs - vt):
+        faults |= safety.FAULT_PLAUSIBILITY
+    # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
     g_est = grade.step(P.grade, st.grade, vt, dtd_est, ba, speed, P.dt_s)
     dtd_rms = modes.road_holding_rms(P.modes, st.modes, dtd_est)
     # 4. modes: recommendation, driver request, safety override, fail-safe (uses 1-3)
@@ -102,8 +119,34 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     duty, active, force = path.control(st, mode, safety_fault, regen_on, ba, wa, i_meas,
                                        force_meas)
     # 7. outputs, quantised as sent (uses 1-6)
-    return st, _outputs(st, duty, active, force, regen_on, mode, g_est, faults, zf, dtd_est,
-                        dtd_rms)
+    out = _outputs(st, duty, active, force, regen_on, mode, g_est, faults, zf, dtd_est, dtd_rms)
+    # 8. diagnostics: the command for the actuator test, the DTC memory (uses 1-7)
+    ds = st.diag
+    fdi.command(ds.fdi, duty, active, out.regen)
+    dtc.update(ds.dtc, inp.tick, faults, ds.fdi.failed, ds.fdi.completed, ds.snap)
+    ds.view = (mode, g_est, faults, 0xFFFF if inp.speed is None else inp.speed,
+               out.ba_rms_mmps2, out.dtd_rms_um, inp.tick)
+    return st, out
+
+
+def _fdi(st: EcuState, inp: Inputs, defl: float, dtd_est: float, i_meas: float,
+         a_rel: float, force_meas: float, v_rel: float) -> int:
+    """Stage 2b: the failed tests' bits (``firmware.diag.fdi``)."""
+    P, k = st.params, st.akf
+    gq = st.grade.gq
+    rho = gq / P.akf_q_gq_nominal if math.isfinite(gq) and gq > P.akf_q_gq_nominal else 1.0
+    Pm = k.P
+    var_v = Pm.item(0, 0) + Pm.item(1, 1) - 2.0 * Pm.item(0, 1)
+    return fdi.step(P, st.diag.fdi, inp.tick, k.innovation.tolist(), k.hph.tolist(),
+                    k.R.diagonal().tolist(), rho,
+                    force_meas, _good_counts(st), defl, dtd_est, i_meas, v_rel, var_v, a_rel)
+
+
+def _good_counts(st: EcuState) -> tuple:
+    """This tick's counts of BA, WA, SWS, current where the ADC found them good, else None."""
+    ch = st.adc.channels
+    return tuple(None if c.faulty or c.good_count == 0 else c.counts for c in (
+        ch["body_accel"], ch["wheel_accel"], ch["susp_defl"], ch["motor_current"]))
 
 
 def _road_per_mps(st: EcuState) -> float:

@@ -167,3 +167,30 @@ class EcuParams:
     actuator: ActuatorParams
     akf_q_follows_grade: bool    # AKF road intensity from the grade estimate
     akf_q_gq_nominal: float      # the G_q behind akf.road_intensity_per_mps
+    fdi: "FdiParams"             # model-based fault detection
+    software_version: str = "0.1.0"   # DID 0xF195
+    calibration_sha256: bytes = bytes(32)  # DID 0xF1A0 (the C tables header's hash)
+    vehicle_sha256: bytes = bytes(32)      # DID 0xF1A1
+
+
+@dataclass(frozen=True)
+class FdiParams:
+    """Model-based fault detection (``firmware.diag.fdi``); derivations in docs/diagnostics.md."""
+
+    nis_lambda: float            # EWMA weight of the windowed normalised innovation (2/(W+1))
+    nis_threshold: float         # chi2_W(1 - alpha) / W: the windowed NIS alarm level
+    flat_ticks: tuple[int, ...]  # identical counts in a row that mean stuck (BA, WA, SWS, I;
+    #                              0: no flatline test, the channel's noise is below one LSB)
+    force_band: float            # (1/eta - eta): the force-from-current ambiguity, per N
+    valid_defl_m: float          # linear model valid below this |SWS| (the bump-stop clearance)
+    valid_tyre_m: float          # ... and tyre deflection below the static one (no lift-off)
+    hold_ticks: int              # after the model was invalid, the innovation tests wait this long
+    cur_lambda: float            # EWMA weight of the current-model residual test
+    cur_threshold: float         # its alarm level (chi2 quantile / window)
+    cur_sigma_a: float           # current measurement noise (noise and quantisation), A
+    open_ratio: float            # open winding: |i| below this many sigma while the model
+    #                              expects more than 10x that
+    settle_ticks: int            # no test verdict before this tick (estimator start-up)
+    clip: float                  # a normalised square enters the EWMAs at most this large
+    road_margin: float           # on the road-driven part of S: one grade of G_q
+    actuator_verdicts: bool      # the actuator test reports (off: it runs, never fails)

@@ -57,6 +57,8 @@ def crc8(data: bytes | bytearray) -> int:
 # ---------------------------------------------------------------- the fault word
 # bits 0-4: the ADC channels (firmware.adc.FAULT_BIT, in adc.CHANNELS order)
 FAULT_AUTH = 1 << 5               # a secured message failed its SecOC check (ignored)
+FAULT_PLAUSIBILITY = 1 << 6       # model-based: a sensor or the actuator disagrees with the
+#                                   model (firmware.diag.fdi; the DTC names which)
 FAULT_RATE = 1 << 7               # a message (or driver request) arrived faster than allowed
 FAULT_NONFINITE_ESTIMATE = 1 << 8  # the estimator diverged (reset, fail-safe this tick)
 FAULT_INVALID_REQUEST = 1 << 9    # driver request with an invalid mode (informational)
@@ -69,17 +71,18 @@ FAULT_UNKNOWN_ID = 1 << 14
 FAULT_RANGE = 1 << 15             # a signal outside its declared range
 
 FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
-               FAULT_AUTH: "auth", FAULT_RATE: "rate",
+               FAULT_AUTH: "auth", FAULT_PLAUSIBILITY: "plausibility", FAULT_RATE: "rate",
                FAULT_NONFINITE_ESTIMATE: "estimator_reset",
                FAULT_INVALID_REQUEST: "invalid_request", FAULT_DLC: "dlc",
                FAULT_CHECKSUM: "checksum", FAULT_COUNTER: "counter",
                FAULT_TIMEOUT: "timeout", FAULT_UNKNOWN_ID: "unknown_id",
                FAULT_RANGE: "range"}
 
-# faults that make active control unsafe: every measured channel, and a diverged estimator
+# faults that make active control unsafe: every measured channel, a diverged estimator, and
+# a sensor or actuator the model-based tests found implausible
 SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
                    | adc.FAULT_BIT["susp_defl"] | adc.FAULT_BIT["motor_current"]
-                   | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE)
+                   | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE | FAULT_PLAUSIBILITY)
 
 
 def fault_names(word: int) -> list[str]:

@@ -340,6 +340,10 @@ const int8_t CONTROL_BP_SCALE_Q31_FRAC[3] = {
     27, 19, 36
 };
 
+const uint8_t FDI_FLAT_TICKS[4] = {
+    15, 25, 12, 12
+};
+
 const int8_t FX_STATE_FRAC[5] = {
     24, 24, 28, 28, 28
 };

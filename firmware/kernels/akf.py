@@ -244,7 +244,7 @@ def predict(phi, gamma, q_unit, x, P, u, q, with_x):
 @njit
 def gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive):
     """The correction's noise adaptation, gain and Joseph-form covariance; see ``gain``.
-    Returns (K, eps, P, R, r, b_pow, guard acted)."""
+    Returns (K, eps, P, R, r, b_pow, guard acted, diag(H P H^T))."""
     m, n = H.shape
     eps = np.empty(m)
     for i in range(m):
@@ -285,13 +285,16 @@ def gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive)
     for i in range(n):
         for j in range(n):
             Pn[i, j] = 0.5 * (Pj[i, j] + Pj[j, i])
-    return K, eps, Pn, Rn, rn, b_pow, hit
+    hph = np.empty(m)
+    for i in range(m):
+        hph[i] = HPHt[i, i]
+    return K, eps, Pn, Rn, rn, b_pow, hit, hph
 
 
 @njit
 def update(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive):
     """Residual z - H x - D u, then ``gain`` and x += K eps. Returns (x, P, R, r, eps,
-    b_pow, guard acted)."""
+    b_pow, guard acted, diag(H P_pred H^T))."""
     m, n = H.shape
     resid = np.empty(m)
     for i in range(m):
@@ -299,15 +302,15 @@ def update(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_ad
         for k in range(n):
             s += H[i, k] * x[k]
         resid[i] = z[i] - s - D[i] * u
-    K, eps, Pn, Rn, rn, b_pow, hit = gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b,
-                                          adaptive, bias_adaptive)
+    K, eps, Pn, Rn, rn, b_pow, hit, hph = gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b,
+                                               adaptive, bias_adaptive)
     xn = np.empty(n)
     for i in range(n):
         s = 0.0
         for k in range(m):
             s += K[i, k] * eps[k]
         xn[i] = x[i] + s
-    return xn, Pn, Rn, rn, eps, b_pow, hit
+    return xn, Pn, Rn, rn, eps, b_pow, hit, hph
 
 
 @njit
@@ -332,20 +335,21 @@ def predict_into(phi, gamma, q_unit, x, P, u, q, with_x):
 
 @njit
 def update_into(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive,
-                 eps_out):
-    xn, Pn, Rn, rn, eps, b_pow, hit = update(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow,
-                                              b, adaptive, bias_adaptive)
+                 eps_out, hph_out):
+    xn, Pn, Rn, rn, eps, b_pow, hit, hph = update(H, D, P, R, r, x, z, u, r_floor, r_scale,
+                                                   b_pow, b, adaptive, bias_adaptive)
     x[:] = xn
     P[:, :] = Pn
     R[:, :] = Rn
     r[:] = rn
     eps_out[:] = eps
+    hph_out[:] = hph
     return b_pow, hit
 
 
 @njit
 def tick_into(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now, r_floor,
-               r_scale, b_pow, b, adaptive, bias_adaptive, eps_out):
+               r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out):
     predict_into(phi, gamma, q_unit, x, P, u_tick, q, True)
     z = np.empty(H.shape[0])
     z[0] = z0
@@ -353,5 +357,5 @@ def tick_into(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now
     if z.shape[0] > 2:
         z[2] = z2
     b_pow, hit = update_into(H, D, P, R, r, x, z, u_now, r_floor, r_scale, b_pow, b, adaptive,
-                              bias_adaptive, eps_out)
+                              bias_adaptive, eps_out, hph_out)
     return b_pow, hit, all_finite(x, P)

@@ -1,0 +1,254 @@
+"""The DTC memory, ISO 14229-1 style (annex D): one DTC per detectable fault, its status byte,
+counter-based debouncing, confirmation, aging and a snapshot at the first failure.
+
+Status bits: 0 testFailed, 1 testFailedThisOperationCycle, 2 pendingDTC, 3 confirmedDTC,
+4 testNotCompletedSinceLastClear, 5 testFailedSinceLastClear, 6
+testNotCompletedThisOperationCycle, 7 warningIndicatorRequested (confirmed and
+safety-relevant, while failing or until the cycle ends).
+
+Each tick every monitor reports failed, passed or nothing (not completed). Debounce (the
+AUTOSAR Dem counter): the fault detection counter FDC moves by ``step_up`` on a failed report
+and ``-step_down`` on a passed one, within [-128, 127]; testFailed is set at 127 and cleared at
+-128. The monitors here are already statistical tests (or frame checks that act within the
+tick), so every DTC is set by its first failed report; a pass must be seen
+``PASS_REPORTS`` times in a row to clear. Confirmation: at the first failed operation cycle
+(threshold 1). Aging: a confirmed DTC whose test passed in ``AGING_CYCLES`` operation cycles
+without failing is cleared from memory. The snapshot (record 1) is taken when testFailed is
+first set since the last clear. The memory survives ``new_cycle`` (ECU reset, power cycle):
+it stands for the ECU's non-volatile memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from firmware import adc, safety
+from firmware.diag import fdi
+
+TF, TFTOC, PDTC, CDTC, TNCSLC, TFSLC, TNCTOC, WIR = (1 << i for i in range(8))
+AVAILABILITY_MASK = 0xFF                 # every bit is supported
+STATUS_AFTER_CLEAR = TNCSLC | TNCTOC     # 0x50
+FDC_MAX, FDC_MIN = 127, -128
+STEP_UP = 255                            # one failed report sets testFailed
+PASS_REPORTS = 2                         # passed reports in a row that clear it
+AGING_CYCLES = 40
+MAX_OCCURRENCES = 255
+
+
+class Dtc(NamedTuple):
+    code: int            # 3 bytes: the 2-byte SAE J2012 code and its failure type byte
+    name: str
+    source: int          # where its reports come from: SRC_FAULT (a fault word bit) or SRC_TEST
+    bit: int             # the fault bit, or the fdi test index
+    safety: bool         # safety-relevant (warning indicator, fail-safe)
+    what: str
+
+
+SRC_FAULT, SRC_TEST = 0, 1
+
+
+def _c(letter: str, number: int, ftb: int) -> int:
+    """SAE J2012 'C1001' + failure type byte -> the 3-byte DTC (P 00, C 01, B 10, U 11)."""
+    return (("PCBU".index(letter) << 14 | number) << 8) | ftb
+
+
+_CH = adc.FAULT_BIT
+DTCS = (
+    # sensor circuits (ADC: out of range, stuck at a rail, no valid sample): FTB 0x1C
+    Dtc(_c("C", 0x1001, 0x1C), "body_accel_circuit", SRC_FAULT, _CH["body_accel"], True,
+        "body accelerometer: out of range, stuck at a rail or no sample"),
+    Dtc(_c("C", 0x1002, 0x1C), "wheel_accel_circuit", SRC_FAULT, _CH["wheel_accel"], True,
+        "wheel accelerometer: out of range, stuck at a rail or no sample"),
+    Dtc(_c("C", 0x1003, 0x1C), "susp_defl_circuit", SRC_FAULT, _CH["susp_defl"], True,
+        "deflection sensor: out of range, stuck at a rail or no sample"),
+    Dtc(_c("C", 0x1004, 0x1C), "motor_current_circuit", SRC_FAULT, _CH["motor_current"], True,
+        "motor current sensor: out of range, stuck at a rail or no sample"),
+    Dtc(_c("C", 0x1005, 0x1C), "speed_circuit", SRC_FAULT, _CH["speed"], True,
+        "vehicle speed: out of range or no valid frame"),
+    # plausibility against the model (innovation tests): FTB 0x29 signal invalid
+    Dtc(_c("C", 0x1001, 0x29), "body_accel_plausibility", SRC_TEST, fdi.T_NIS_BA, True,
+        "body acceleration innovation above its chi-square level"),
+    Dtc(_c("C", 0x1003, 0x29), "susp_defl_plausibility", SRC_TEST, fdi.T_NIS_SWS, True,
+        "suspension deflection innovation above its chi-square level"),
+    Dtc(_c("C", 0x1002, 0x29), "wheel_accel_plausibility", SRC_TEST, fdi.T_NIS_WA, True,
+        "wheel acceleration innovation above its chi-square level"),
+    # stuck in range (flatline): FTB 0x2A
+    Dtc(_c("C", 0x1001, 0x2A), "body_accel_stuck", SRC_TEST, fdi.T_FLAT_BA, True,
+        "body accelerometer stuck at one count"),
+    Dtc(_c("C", 0x1002, 0x2A), "wheel_accel_stuck", SRC_TEST, fdi.T_FLAT_WA, True,
+        "wheel accelerometer stuck at one count"),
+    Dtc(_c("C", 0x1003, 0x2A), "susp_defl_stuck", SRC_TEST, fdi.T_FLAT_SWS, True,
+        "deflection sensor stuck at one count"),
+    Dtc(_c("C", 0x1004, 0x2A), "motor_current_stuck", SRC_TEST, fdi.T_FLAT_CUR, True,
+        "motor current sensor stuck at one count"),
+    # actuator: FTB 0x71 actuator stuck, 0x13 circuit open
+    Dtc(_c("C", 0x1010, 0x71), "actuator_stuck", SRC_TEST, fdi.T_ACT_STUCK, True,
+        "the motor current does not follow the commanded voltage"),
+    Dtc(_c("C", 0x1010, 0x13), "actuator_open", SRC_TEST, fdi.T_ACT_OPEN, True,
+        "no motor current where the commanded voltage drives one (open winding)"),
+    # the estimator: FTB 0x92 performance
+    Dtc(_c("C", 0x1020, 0x92), "estimator_reset", SRC_FAULT, safety.FAULT_NONFINITE_ESTIMATE,
+        True, "the state estimate diverged and was reset"),
+    # network (U codes): 0x81 invalid data, 0x82 counter, 0x83 checksum, 0x87 missing
+    Dtc(_c("U", 0x0401, 0x87), "frame_timeout", SRC_FAULT, safety.FAULT_TIMEOUT, True,
+        "a sensor frame missing or VEHICLE_SPEED late"),
+    Dtc(_c("U", 0x0401, 0x83), "frame_checksum", SRC_FAULT, safety.FAULT_CHECKSUM, True,
+        "a frame with a bad CHECKSUM"),
+    Dtc(_c("U", 0x0401, 0x82), "frame_counter", SRC_FAULT, safety.FAULT_COUNTER, True,
+        "a frame's COUNTER repeated or jumped"),
+    Dtc(_c("U", 0x0401, 0x81), "frame_dlc", SRC_FAULT, safety.FAULT_DLC, True,
+        "a frame with the wrong DLC"),
+    Dtc(_c("U", 0x0401, 0x86), "frame_range", SRC_FAULT, safety.FAULT_RANGE, True,
+        "a signal outside its declared range"),
+    Dtc(_c("U", 0x0402, 0x81), "unknown_id", SRC_FAULT, safety.FAULT_UNKNOWN_ID, False,
+        "a frame with an ID the DBC does not define"),
+    Dtc(_c("U", 0x0403, 0x81), "bus_rate", SRC_FAULT, safety.FAULT_RATE, False,
+        "a message or driver request came too often"),
+    Dtc(_c("U", 0x0404, 0x84), "authentication", SRC_FAULT, safety.FAULT_AUTH, False,
+        "a secured message failed its SecOC check"),
+    Dtc(_c("U", 0x0405, 0x81), "invalid_request", SRC_FAULT, safety.FAULT_INVALID_REQUEST,
+        False, "a driver request for a mode that does not exist"),
+)
+BY_CODE = {d.code: i for i, d in enumerate(DTCS)}
+BY_NAME = {d.name: i for i, d in enumerate(DTCS)}
+TEST_DTCS = tuple(i for i, d in enumerate(DTCS) if d.source == SRC_TEST)
+FAULT_DTCS = tuple(i for i, d in enumerate(DTCS) if d.source == SRC_FAULT)
+
+
+class Snapshot(NamedTuple):
+    """Record 1, taken at the first failure since the last clear (DID 0x0200's layout)."""
+
+    tick: int
+    speed_cmps: int          # vehicle speed, cm/s (0xFFFF unknown)
+    grade: int               # 0..3 = A..D, 255 unknown
+    mode: int                # active mode
+    ba_rms_mmps2: int
+    dtd_rms_um: int
+    supply_mv: int           # DC supply voltage, mV (0xFFFF: not measured)
+
+
+@dataclass
+class DtcEntry:
+    status: int = STATUS_AFTER_CLEAR
+    fdc: int = FDC_MIN
+    passes: int = 0               # passed reports in a row
+    occurrences: int = 0          # operation cycles with a failure since the last clear
+    aging: int = 0                # operation cycles passed without failure since it failed
+    snapshot: Snapshot | None = None
+    first_tick: int = -1          # tick of the first failure this cycle (detection time)
+
+
+@dataclass
+class DtcMemory:
+    entries: list = field(default_factory=lambda: [DtcEntry() for _ in DTCS])
+    setting_on: bool = True       # 0x85 ControlDTCSetting
+    cycle: int = 0
+    quiet: bool = True            # every entry at rest (no failure this cycle): fast path
+    tnc_done: bool = False        # no not-completed bit left to clear (fast path)
+
+
+def update(mem: DtcMemory, tick: int, fault_word: int, test_failed: int,
+           test_completed: int, snapshot) -> None:
+    """One tick of reports: fault-word bits fail their DTCs (a clear bit is a pass: the frame
+    and ADC checks run every tick); fdi tests report through ``test_failed``/``completed``.
+    ``snapshot(tick)`` builds the freeze frame when one is needed."""
+    if not mem.setting_on:
+        return
+    if mem.quiet and not fault_word and not test_failed:
+        if not mem.tnc_done:
+            _complete_quiet(mem, test_completed)
+        return
+    any_active = False
+    for i, d in enumerate(DTCS):
+        e = mem.entries[i]
+        if d.source == SRC_FAULT:
+            fail, done = bool(fault_word & d.bit), True
+        else:
+            fail, done = bool(test_failed >> d.bit & 1), bool(test_completed >> d.bit & 1)
+        if fail:
+            _failed(e, d, tick, snapshot)
+        elif done:
+            _passed(e)
+        if e.status & (TF | TFTOC) or e.fdc > FDC_MIN:
+            any_active = True
+    mem.quiet = not any_active
+
+
+def _complete_quiet(mem: DtcMemory, completed: int) -> None:
+    """Passed reports while nothing fails: only the not-completed bits change (the fault-word
+    DTCs completed with their first tick)."""
+    left = False
+    for i, d in enumerate(DTCS):
+        e = mem.entries[i]
+        if e.status & (TNCSLC | TNCTOC):
+            if d.source == SRC_FAULT or completed >> d.bit & 1:
+                e.status &= ~(TNCSLC | TNCTOC)
+            else:
+                left = True
+    mem.tnc_done = not left
+
+
+def _failed(e: DtcEntry, d: Dtc, tick: int, snapshot) -> None:
+    e.passes = 0
+    e.fdc = min(FDC_MAX, e.fdc + STEP_UP)
+    e.status &= ~(TNCSLC | TNCTOC)
+    if e.fdc >= FDC_MAX and not e.status & TF:
+        first_this_cycle = not e.status & TFTOC
+        e.status |= TF | TFTOC | PDTC | CDTC | TFSLC
+        if d.safety:
+            e.status |= WIR
+        if first_this_cycle:
+            e.occurrences = min(MAX_OCCURRENCES, e.occurrences + 1)
+            e.aging = 0
+            e.first_tick = tick
+        if e.snapshot is None:
+            e.snapshot = snapshot(tick)
+
+
+def _passed(e: DtcEntry) -> None:
+    e.status &= ~(TNCSLC | TNCTOC)
+    e.passes += 1
+    e.fdc = max(FDC_MIN, e.fdc - (FDC_MAX - FDC_MIN) // PASS_REPORTS)
+    if e.passes >= PASS_REPORTS:
+        e.fdc = FDC_MIN
+        e.status &= ~TF
+
+
+def new_cycle(mem: DtcMemory) -> None:
+    """A new operation cycle (ECU reset or power-up): pending clears where the last cycle
+    completed without failure, confirmed DTCs age, the this-cycle bits start again."""
+    mem.cycle += 1
+    for e in mem.entries:
+        failed = bool(e.status & TFTOC)
+        completed = not e.status & TNCTOC
+        if completed and not failed:
+            e.status &= ~PDTC
+            if e.status & CDTC:
+                e.aging += 1
+                if e.aging >= AGING_CYCLES:
+                    e.status &= ~(CDTC | WIR)
+                    e.aging = 0
+        e.status &= ~(TFTOC | WIR | TF)
+        e.status |= TNCTOC
+        e.fdc, e.passes, e.first_tick = FDC_MIN, 0, -1
+    mem.quiet, mem.tnc_done = True, False
+
+
+def clear(mem: DtcMemory, group: int) -> bool:
+    """ClearDiagnosticInformation: 0xFFFFFF every DTC, else one DTC code. False: no such
+    group."""
+    if group == 0xFFFFFF:
+        idx = range(len(DTCS))
+    elif group in BY_CODE:
+        idx = (BY_CODE[group],)
+    else:
+        return False
+    for i in idx:
+        mem.entries[i] = DtcEntry()
+    mem.quiet, mem.tnc_done = True, False
+    return True
+
+
+def status_of(mem: DtcMemory, i: int) -> int:
+    return mem.entries[i].status & AVAILABILITY_MASK
