@@ -121,12 +121,18 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     # 7. outputs, quantised as sent (uses 1-6)
     out = _outputs(st, duty, active, force, regen_on, mode, g_est, faults, zf, dtd_est, dtd_rms)
     # 8. diagnostics: the command for the actuator test, the DTC memory (uses 1-7)
-    ds = st.diag
-    fdi.command(ds.fdi, duty, active, out.regen)
+    _diagnostics(st.diag, inp, out, duty, mode, g_est, faults)
+    return st, out
+
+
+def _diagnostics(ds: diag.DiagState, inp: Inputs, out: Outputs, duty: int, mode: int,
+                 g_est: int, faults: int) -> None:
+    """Stage 8: the tick's command for the actuator test, the DTC memory's reports, and the
+    values the DIDs and the next snapshot read."""
+    fdi.command(ds.fdi, duty, out.enable, out.regen)
     dtc.update(ds.dtc, inp.tick, faults, ds.fdi.failed, ds.fdi.completed, ds.snap)
     ds.view = (mode, g_est, faults, 0xFFFF if inp.speed is None else inp.speed,
                out.ba_rms_mmps2, out.dtd_rms_um, inp.tick)
-    return st, out
 
 
 def _fdi(st: EcuState, inp: Inputs, defl: float, dtd_est: float, i_meas: float,

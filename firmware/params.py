@@ -192,5 +192,5 @@ class FdiParams:
     #                              expects more than 10x that
     settle_ticks: int            # no test verdict before this tick (estimator start-up)
     clip: float                  # a normalised square enters the EWMAs at most this large
-    road_margin: float           # on the road-driven part of S: one grade of G_q
+    nis_verdicts: tuple[bool, ...]  # which innovation tests report (BA, SWS, WA)
     actuator_verdicts: bool      # the actuator test reports (off: it runs, never fails)

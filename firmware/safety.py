@@ -135,7 +135,8 @@ RX_CHECKS = (
     RxCheck("VEHICLE_SPEED", 10, 3, True, 0.5),
     RxCheck("DRIVER_REQUEST", 100, 0, True, 0.0),
 )
-TX_MESSAGES = ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND")
+TX_MESSAGES = ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND",
+               "DIAG_RESPONSE")
 
 
 # ---------------------------------------------------------------- frame validity

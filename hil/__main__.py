@@ -7,6 +7,8 @@
     python -m hil routes
     python -m hil vcan [-- COMMAND ...]      (User-mode Linux with vcan0 up; hil/vcan.py)
     python -m hil logdiff CANDUMP.log BUS.log [--json]
+    python -m hil diag -i remote -c ws://127.0.0.1:PORT/ --secret-file DIR/hub.secret [--clear]
+    python -m hil alarms [--routes R,..] [--seeds N] [--vehicles F,..] [--speeds V,..] [--json]
 """
 
 from __future__ import annotations
@@ -50,6 +52,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("reference", metavar="LOG")
     p.add_argument("other", metavar="LOG")
     add_json_argument(p)
+    from hil import alarms, diag
+
+    diag.add_parser(sub)
+    alarms.add_parser(sub)
     p = sub.add_parser("keygen", help="write a new SecOC key file (16 random bytes, mode 0600)")
     p.add_argument("file", metavar="FILE")
     p = sub.add_parser("sim", help="software-in-the-loop: the whole ECU against the plant, "
@@ -93,6 +99,10 @@ def main(argv: list[str] | None = None) -> int:
 
         return faults.main(args)
 
+    if args.command in ("diag", "alarms"):
+        from hil import alarms, diag
+
+        return (diag if args.command == "diag" else alarms).main(args)
     if args.command == "keygen":
         from hil import secoc
         from hil.cli import fail

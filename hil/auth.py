@@ -16,7 +16,9 @@ from typing import Optional
 
 SECRET_ENV = "HIL_HUB_SECRET"
 # which DBC transmitters a bench node may speak for (the plant also sends the simulation's)
-NODE_SENDERS = {"PLANT": ("PLANT", "SIM"), "ECU": ("ECU",), "APP": ("APP",)}
+# (TESTER: a UDS tester, python -m hil diag: DIAG_REQUEST alone)
+NODE_SENDERS = {"PLANT": ("PLANT", "SIM"), "ECU": ("ECU",), "APP": ("APP",),
+                "TESTER": ("TESTER",)}
 
 
 def node_token(secret: bytes, node: str) -> str:

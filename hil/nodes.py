@@ -35,6 +35,7 @@ import numpy as np
 
 from calib.fx_tables import build_tables
 from firmware import ecu, safety
+from firmware.diag import uds
 from firmware import params as fp
 from firmware.path import FixedPath
 from hil import secoc
@@ -336,8 +337,10 @@ class EcuNode:
                  fixed_point: bool = False, record: bool = False, key: Optional[bytes] = None):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
-        self.state = ecu.init(params, FixedPath(params, build_tables(params), record)
-                              if fixed_point else None)
+        # the arithmetic path (a new one after an ECU reset, UDS 0x11)
+        self.new_path = (lambda: FixedPath(params, build_tables(params), record)) \
+            if fixed_point else (lambda: None)
+        self.state = ecu.init(params, self.new_path())
         self.tx = Tx(codec, allowed=safety.TX_MESSAGES)
         # (with SecOC the CHECKSUM is written once, after the MAC: Sender.protect)
         self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"),
@@ -354,8 +357,11 @@ class EcuNode:
         # SecOC: the command signed, the driver's request verified (key None: unsecured)
         self.cmd_sec = secoc.sender(codec, key, "ACTUATOR_CMD")
         self.req_auth = secoc.receiver(codec, key, "DRIVER_REQUEST")
-        # SIM_TICK (the simulated timer tick of a suppressed sensor frame) only in lockstep
-        self.listen = set(self.rx_specs) | ({ID["SIM_TICK"]} if lockstep else set())
+        # SIM_TICK (the simulated timer tick of a suppressed sensor frame) only in lockstep;
+        # DIAG_REQUEST: a tester's UDS over ISO-TP (hil.diag.UdsServer, made on first use)
+        self.listen = set(self.rx_specs) | {ID["DIAG_REQUEST"]} | (
+            {ID["SIM_TICK"]} if lockstep else set())
+        self.uds = None
         # known frames of others (and SIM_TRUTH): on_frame does nothing with them
         self.ignore = frozenset(ID.values()) - self.listen
         self.k = 0
@@ -370,6 +376,7 @@ class EcuNode:
         self.frame_faults: Counter = Counter()
         self.last_rec = None
         self.unrecorded = None              # the last tick, until record() books it
+        self.resets = 0                     # ECU resets a tester asked for (UDS 0x11)
         self.sha = hashlib.sha256()
         self.rows = array("q")              # per tick: ECU_TRACE
 
@@ -384,6 +391,8 @@ class EcuNode:
         if fid == ID["SIM_TICK"]:
             self.pending.append(MISSING)
             return []
+        if fid == ID["DIAG_REQUEST"]:
+            return self._diag(data)
         rx = self.rx.get(fid)
         if fid == ID["PLANT_SENSORS"]:
             v, faults = self.unpack_sensors(data, rx, self.k)
@@ -423,6 +432,25 @@ class EcuNode:
 
     def ready(self) -> bool:
         return bool(self.pending) and self.held_cmd is None
+
+    def _diag(self, data: bytes) -> list[Frame]:
+        """A tester's frame: the ISO-TP answer (flow control, the UDS response). Between
+        ticks; the control state is untouched but for a reset (0x11), carried out here after
+        its response is queued: a new operation cycle, the DTC memory kept."""
+        if self.uds is None:
+            from hil.diag import UdsServer
+
+            self.uds = UdsServer(lambda req: uds.handle(self.state.diag, self.params, self.k,
+                                                        req))
+        frames = self.uds.on_frame(data)
+        return self._diag_out(frames)
+
+    def _diag_out(self, frames: list[Frame]) -> list[Frame]:
+        self.tx.sent["DIAG_RESPONSE"] += len(frames)
+        if self.state.diag.reset_requested:
+            self.state = ecu.reset(self.state, self.new_path())
+            self.resets += 1
+        return frames
 
     def timer_tick(self) -> None:
         """Realtime pacing: the ECU's own timer fired without a sensor frame (bus silence)."""
@@ -483,6 +511,8 @@ class EcuNode:
             self.awaiting = 0
             frames.insert(0, cmd)
         self.unrecorded = (k, counts, speed, kind, rmode, rid, link_faults, out)
+        if self.uds is not None and self.uds.busy:   # (a transfer's ISO-TP timers)
+            frames += self._diag_out(self.uds.poll())
         return frames
 
     def record(self) -> None:
@@ -511,6 +541,8 @@ class EcuNode:
                 "akf_r_guard_hits": self.state.akf.guard_hits,
                 "frame_faults": dict(self.frame_faults),
                 "arithmetic": self.state.path.name,
+                "uds_requests": self.uds.requests if self.uds else 0,
+                "isotp_errors": self.uds.errors if self.uds else 0, "ecu_resets": self.resets,
                 "fx_gain_saturations": self.state.path.gain_saturations}
 
     def trace(self) -> dict:

@@ -352,7 +352,7 @@ def run(args, on_bus=None) -> int:
 
     stale = [f"{n}{x}" for n in NODES for x in (".json", ".npz", ".log")]
     for name in (*stale, "hub.log", "report.json", "report.md", secoc.KEY_FILE_NAME,
-                 *FIGURES):
+                 HUB_SECRET_FILE, *FIGURES):
         (out / name).unlink(missing_ok=True)   # a failed run leaves no old report behind
     key_file = _key_file(args, out)
     dt = cfg.sim.plant_dt_s
@@ -377,6 +377,7 @@ def run(args, on_bus=None) -> int:
         if needs_hub:
             # the run's secret: to the hub and the nodes in their environment, never argv
             env[SECRET_ENV] = secrets.token_hex(16)
+            _write_secret(out / HUB_SECRET_FILE, env[SECRET_ENV])
             hub = Hub(rt_priority=rt_of(rt, "hub"), secret=env[SECRET_ENV],
                       allow_external_tx=getattr(args, "allow_external_tx", False),
                       allow_unknown_ids=bool(getattr(args, "inject", None)),
@@ -405,6 +406,7 @@ def run(args, on_bus=None) -> int:
                 raise NodeFailure(f"node {name} exited with code {rc}: "
                                   f"{nodes[name].last_error()}")
         summaries = {name: json.loads((out / f"{name}.json").read_text()) for name in NODES}
+        _count_tester(args, logger)
         sent = sum(sum(s["frames_sent"].values()) for s in summaries.values()) + sum(
             (getattr(args, "outside_frames", None) or {}).values())
         if not logger.wait_for(sent, 10.0):
@@ -433,6 +435,26 @@ def run(args, on_bus=None) -> int:
         return code
     return _report(out, cfg, route, args, n, dt, summaries, logger, time.monotonic() - t_start,
                    spec)
+
+
+HUB_SECRET_FILE = "hub.secret"
+
+
+def _write_secret(path: Path, secret: str) -> None:
+    """The run's hub secret for a tester (``hil diag --secret-file``): mode 0600, the run's
+    directory only, never argv. It makes its holder the DBC's TESTER: DIAG_REQUEST alone."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(secret + "\n")
+
+
+def _count_tester(args, logger) -> None:
+    """A tester's DIAG_REQUEST frames are on the bus but no node sent them: the bus check
+    counts them as an outside sender's (on a hub only an authenticated TESTER can send them)."""
+    n = logger.log.by_id.get(ID["DIAG_REQUEST"], 0)
+    if n:
+        args.outside_frames = {**(getattr(args, "outside_frames", None) or {}),
+                               "DIAG_REQUEST": n}
 
 
 def _key_file(args, out: Path) -> Path:

@@ -23,9 +23,11 @@ def test_dbc_loads_in_cantools_and_canmatrix_and_follows_conventions():
     for m in CODEC.db.messages:
         assert m.name == m.name.upper(), m.name
         # every message is cyclic, except the event-only simulation tick of fault injection
+        # and the diagnostic request and response
         event = m.dbc.attributes["GenMsgSendType"].value == "Event" \
             if "GenMsgSendType" in m.dbc.attributes else False
-        assert bool(m.cycle_time) != event and (not event or m.name.startswith("SIM_")), m.name
+        assert bool(m.cycle_time) != event, m.name
+        assert not event or m.name in ("SIM_TICK", "DIAG_REQUEST", "DIAG_RESPONSE"), m.name
         for s in m.signals:
             assert s.name == s.name.upper() and s.byte_order == "little_endian"
         if m.name in SAFETY_RELEVANT:
@@ -235,5 +237,6 @@ def test_the_firmwares_receive_and_transmit_tables_match_the_dbc():
     from hil.config import default_vehicle
 
     node = EcuNode(ecu_params(default_vehicle(), "auto"), codec)
-    assert node.listen - {ID["SIM_TICK"]} == {ID[c.message] for c in safety.RX_CHECKS}
+    assert node.listen - {ID["SIM_TICK"], ID["DIAG_REQUEST"]} == {
+        ID[c.message] for c in safety.RX_CHECKS}
     assert node.spec_speed.timeout_ticks == 30 and node.spec_speed.min_interval_ticks == 5

@@ -344,6 +344,10 @@ const uint8_t FDI_FLAT_TICKS[4] = {
     15, 25, 12, 12
 };
 
+const uint8_t FDI_NIS_VERDICTS[3] = {
+    1, 1, 0
+};
+
 const int8_t FX_STATE_FRAC[5] = {
     24, 24, 28, 28, 28
 };

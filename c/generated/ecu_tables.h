@@ -323,9 +323,8 @@ extern const uint8_t FDI_FLAT_TICKS[4];
 #define FDI_CLIP_F32 25.0f
 #define FDI_CLIP_Q31 ((int32_t)1677721600)
 #define FDI_CLIP_Q31_FRAC 26
-#define FDI_ROAD_MARGIN_F32 4.0f
-#define FDI_ROAD_MARGIN_Q31 ((int32_t)1073741824)
-#define FDI_ROAD_MARGIN_Q31_FRAC 28
+#define FDI_NIS_VERDICTS_LEN 3
+extern const uint8_t FDI_NIS_VERDICTS[3];
 #define FDI_ACTUATOR_VERDICTS 0
 
 /* AKF road intensity */

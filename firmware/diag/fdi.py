@@ -3,19 +3,19 @@
 Each tick, after the Kalman filter's correction (``firmware.ecu`` stage 2):
 
 * **Innovation tests** (one per measurement: BA, SWS, WA). The filter's innovation eps_j is
-  normalised by its variance under the nominal model, S_jj = (H P H^T)_jj rho + R0_jj +
-  D_j^2 var_F: P is the filter's own covariance; rho >= 1 scales it to the road intensity the
-  grade estimate measured when the filter's process noise is capped below it; R0 is the sensor
-  noise (with ADC quantisation), or the filter's adapted R-hat where that is larger; the road
-  part H P H^T carries a margin of one grade (x4 in G_q: the grade estimate's resolution, and
-  what a grade change does before the estimate follows); var_F is the uncertainty of the force taken from the measured
-  current (the screw's efficiency applies one way and its inverse the other, so the force
-  lies in a band of width |F| (1/eta - eta), uniform: /12; and it changes within the tick:
-  (dF/2)^2). Under the model the normalised squares are chi^2(1); their EWMA over W ticks is
-  about chi^2_W / W, and an alarm above chi^2_W(1 - alpha) / W has a false-alarm probability
-  alpha per window. The tests hold (no new verdict) while the linear model is known not to
-  hold: suspension stroke beyond the bump-stop clearance, tyre deflection beyond the static
-  one (lift-off), and for ``hold_ticks`` afterwards.
+  normalised by its variance under the model, S_jj = (H P H^T)_jj rho + max(R0_jj, R-hat_jj)
+  + D_j^2 var_F: P is the filter's own covariance; rho >= 1 scales it to the road intensity
+  the grade estimate measured where the filter's process noise is capped below it; R0 is the
+  sensor noise (with ADC quantisation), or the filter's adapted R-hat where that is larger;
+  var_F is the uncertainty of the force taken from the measured current (the screw's
+  efficiency applies one way and its inverse the other, so the force lies in a band of width
+  |F| (1/eta - eta), uniform: /12; and it changes within the tick: (dF/2)^2). Under the model
+  the normalised squares are chi^2(1); their EWMA over W ticks is about chi^2_W / W, and an
+  alarm above chi^2_W(1 - alpha) / W has a false-alarm probability alpha per window. The
+  statistics hold while the linear model is known not to apply (suspension stroke beyond the
+  bump-stop clearance, tyre deflection beyond the static one: lift-off) and for
+  ``hold_ticks`` afterwards. ``nis_verdicts`` says which tests report (WA's does not: its
+  innovation is the road's, whose roughness steps at a segment boundary).
 * **Flatline tests** (BA, WA, SWS, current): white noise of std sigma on an ADC of step q gives
   the same count twice with probability at most q / (2 sigma sqrt(pi)); n identical counts in
   a row (away from the rails, which the ADC test owns) then have probability below alpha. A
@@ -76,42 +76,60 @@ def step(P: EcuParams, st: FdiState, tick: int, eps, hph, r_hat, rho: float, for
          counts: tuple, defl: float, dtd_est: float, i_meas: float, v_rel: float,
          var_v_rel: float, a_rel: float) -> int:
     """One tick of every test; returns the failed bits (also in ``st.failed``). ``eps``,
-    ``hph``, ``r_hat``: the filter's innovation, diag(H P H^T) and diag(R-hat); ``counts``: this tick's ADC counts of
-    BA, WA, SWS, current (None when the ADC had none: no flatline verdict); ``defl``: the
-    measured stroke; ``dtd_est``: the estimated tyre deflection; ``v_rel``,
-    ``var_v_rel``: the estimated relative velocity and its variance; ``a_rel``: BA - WA."""
-    F, A, plant = P.fdi, P.akf, P.plant
+    ``hph``, ``r_hat``: the filter's innovation, diag(H P H^T) and diag(R-hat); ``counts``:
+    this tick's ADC counts of BA, WA, SWS, current (None when the ADC had none: no flatline
+    verdict); ``defl``: the measured stroke; ``dtd_est``: the estimated tyre deflection;
+    ``v_rel``, ``var_v_rel``: the estimated relative velocity and its variance; ``a_rel``:
+    BA - WA."""
+    settled = tick >= P.fdi.settle_ticks
+    f1, c1 = _innovation(P, st, tick, settled, eps, hph, r_hat, rho, force_meas, defl, dtd_est)
+    f2, c2 = _flatline(P, st, settled, counts)
+    f3, c3 = _actuator(P, st, settled, counts[3] is not None, i_meas, v_rel, var_v_rel, a_rel,
+                       bool(f2 & 1 << T_FLAT_CUR))
+    failed, st.completed = f1 | f2 | f3, c1 | c2 | c3
+    st.failed = failed
+    if failed:
+        for t in range(N_TESTS):
+            if failed >> t & 1 and st.first_failed[t] < 0:
+                st.first_failed[t] = tick
+    return failed
+
+
+def _innovation(P, st, tick, settled, eps, hph, r_hat, rho, force_meas, defl, dtd_est):
+    """The innovation tests: (failed, completed) bits."""
+    F, A = P.fdi, P.akf
     failed = completed = 0
-    settled = tick >= F.settle_ticks
-    # innovation tests (the model's validity first)
     if abs(defl) > F.valid_defl_m or abs(dtd_est) > F.valid_tyre_m:
-        st.invalid_until = tick + F.hold_ticks
+        st.invalid_until = tick + F.hold_ticks    # the linear model does not hold here
     dF = force_meas - st.force_prev
     var_f = (abs(force_meas) * F.force_band) ** 2 / 12.0 + 0.25 * dF * dF
     st.force_prev = force_meas
+    if tick <= st.invalid_until:                  # the statistics hold meanwhile
+        return 0, 0
     lam, clip = F.nis_lambda, F.clip
-    hold = tick <= st.invalid_until       # the statistics hold while the model does not
     for j in range(len(eps)):
-        if hold:
-            break
         d = A.D.item(j)
-        s = hph[j] * rho * F.road_margin + max(A.r0.item(j, j), r_hat[j]) + d * d * var_f
+        s = hph[j] * rho + max(A.r0.item(j, j), r_hat[j]) + d * d * var_f
         v = eps[j] * eps[j] / s
         if not math.isfinite(v):
-            continue                      # (a diverged filter is its own fault: reset)
+            continue                              # (a diverged filter is its own fault)
         st.nis[j] += lam * (min(v, clip) - st.nis[j])
-        if settled:
+        if settled and F.nis_verdicts[j]:
             completed |= 1 << j
             if st.nis[j] > F.nis_threshold:
                 failed |= 1 << j
-    # flatline tests
+    return failed, completed
+
+
+def _flatline(P, st, settled, counts):
+    """The flatline tests: (failed, completed) bits."""
+    failed = completed = 0
     for c, t in enumerate(FLAT_TESTS):
-        n = F.flat_ticks[c]
+        n = P.fdi.flat_ticks[c]
         cnt = counts[c]
         if not n or cnt is None:
             continue
-        full = _full_scale(P, c)
-        if cnt == st.flat_last[c] and 0 < cnt < full:
+        if cnt == st.flat_last[c] and 0 < cnt < _full_scale(P, c):   # (rails: the ADC's)
             st.flat_run[c] += 1
         else:
             st.flat_run[c] = 1
@@ -120,8 +138,13 @@ def step(P: EcuParams, st: FdiState, tick: int, eps, hph, r_hat, rho: float, for
             completed |= 1 << t
             if st.flat_run[c] >= n:
                 failed |= 1 << t
-    # actuator: the winding model over the last tick
-    ap = P.actuator
+    return failed, completed
+
+
+def _actuator(P, st, settled, sampled, i_meas, v_rel, var_v_rel, a_rel, sensor_flat):
+    """The actuator test on the winding model over the last tick: (failed, completed)."""
+    F, ap, plant = P.fdi, P.actuator, P.plant
+    failed = completed = 0
     if st.enable_prev:
         v_dc = plant.storage_voltage if st.regen_prev else plant.bus_voltage
         volt = st.duty_prev / 32768.0 * v_dc
@@ -134,25 +157,21 @@ def step(P: EcuParams, st: FdiState, tick: int, eps, hph, r_hat, rho: float, for
         var_r = F.cur_sigma_a ** 2
     r = i_meas - i_pred
     v = r * r / var_r
+    st.i_prev = i_meas
     # the bridge's hardware current limit lowers the voltage it applies: no verdict there
     limited = max(abs(i_pred), abs(i_meas)) >= plant.current_limit - 5.0 * F.cur_sigma_a
-    if math.isfinite(v) and counts[3] is not None and not limited:
-        st.cur += F.cur_lambda * (min(v, clip) - st.cur)
-        if settled and F.actuator_verdicts:
-            completed |= (1 << T_ACT_STUCK) | (1 << T_ACT_OPEN)
-            if st.cur > F.cur_threshold and not failed & (1 << T_FLAT_CUR):
-                sig = F.cur_sigma_a
-                if abs(i_meas) < F.open_ratio * sig and abs(i_pred) > 10 * F.open_ratio * sig:
-                    failed |= 1 << T_ACT_OPEN
-                else:
-                    failed |= 1 << T_ACT_STUCK
-    st.i_prev = i_meas
-    st.failed, st.completed = failed, completed
-    if failed:
-        for t in range(N_TESTS):
-            if failed >> t & 1 and st.first_failed[t] < 0:
-                st.first_failed[t] = tick
-    return failed
+    if not (math.isfinite(v) and sampled) or limited:
+        return 0, 0
+    st.cur += F.cur_lambda * (min(v, F.clip) - st.cur)
+    if settled and F.actuator_verdicts:
+        completed = (1 << T_ACT_STUCK) | (1 << T_ACT_OPEN)
+        if st.cur > F.cur_threshold and not sensor_flat:
+            sig = F.cur_sigma_a
+            if abs(i_meas) < F.open_ratio * sig and abs(i_pred) > 10 * F.open_ratio * sig:
+                failed = 1 << T_ACT_OPEN
+            else:
+                failed = 1 << T_ACT_STUCK
+    return failed, completed
 
 
 def command(st: FdiState, duty_q15: int, enable: bool, regen: bool) -> None:
