@@ -104,7 +104,7 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     # 2b. model-based fault detection: innovation, flatline and actuator tests (uses 1, 2)
     if not finite:
         st.diag.fdi.failed = st.diag.fdi.completed = 0
-    elif _fdi(st, inp, defl, dtd_est, i_meas, ba - wa, force_meas, vs - vt):
+    elif _fdi(st, inp, defl, dtd_est, i_meas, ba - wa, force_meas, vs - vt, faults):
         faults |= safety.FAULT_PLAUSIBILITY
     # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
     g_est = grade.step(P.grade, st.grade, vt, dtd_est, ba, speed, P.dt_s)
@@ -136,16 +136,21 @@ def _diagnostics(ds: diag.DiagState, inp: Inputs, out: Outputs, duty: int, mode:
 
 
 def _fdi(st: EcuState, inp: Inputs, defl: float, dtd_est: float, i_meas: float,
-         a_rel: float, force_meas: float, v_rel: float) -> int:
+         a_rel: float, force_meas: float, v_rel: float, faults: int) -> int:
     """Stage 2b: the failed tests' bits (``firmware.diag.fdi``)."""
     P, k = st.params, st.akf
     gq = st.grade.gq
     rho = gq / P.akf_q_gq_nominal if math.isfinite(gq) and gq > P.akf_q_gq_nominal else 1.0
     Pm = k.P
     var_v = Pm.item(0, 0) + Pm.item(1, 1) - 2.0 * Pm.item(0, 1)
-    return fdi.step(P, st.diag.fdi, inp.tick, k.innovation.tolist(), k.hph.tolist(),
-                    k.R.diagonal().tolist(), rho,
-                    force_meas, _good_counts(st), defl, dtd_est, i_meas, v_rel, var_v, a_rel)
+    return fdi.step(P, st.diag.fdi, inp.tick, k.innovation.tolist(), k.hph.tolist(), rho,
+                    force_meas, _good_counts(st), defl, dtd_est, i_meas, v_rel, var_v, a_rel,
+                    not faults & INPUT_FAULTS)
+
+
+# an ADC channel or a frame of the receive path was bad: the filter ran on held values
+INPUT_FAULTS = (sum(adc.FAULT_BIT.values()) | safety.FAULT_DLC | safety.FAULT_CHECKSUM
+                | safety.FAULT_COUNTER | safety.FAULT_TIMEOUT | safety.FAULT_RANGE)
 
 
 def _good_counts(st: EcuState) -> tuple:

@@ -125,7 +125,10 @@ REPORTED = 0x2F     # DTCs with any of TF, TFTOC, PDTC, CDTC, TFSLC
 def read_all(client, clear: bool = False) -> dict:
     """Identification and live DIDs, then every DTC that failed since the last clear with its
     snapshot and extended data; then clear them when asked."""
-    from firmware.diag import dtc as fw_dtc
+    return {"ecu": read_dids(client), **read_dtcs(client, clear)}
+
+
+def read_dids(client) -> dict:
     from firmware.diag import uds
     from firmware.params import GRADE_NAMES, MODE_NAMES
 
@@ -147,6 +150,17 @@ def read_all(client, clear: bool = False) -> dict:
         "fault_word": u16(dids[uds.DID_FAULT_WORD]),
         "ba_rms_mps2": u16(dids[uds.DID_BA_RMS]) / 1000, "dtd_rms_m": u16(dids[uds.DID_DTD_RMS]) / 1e6,
         "tick": int.from_bytes(dids[uds.DID_TICK], "big")}
+    return ident
+
+
+def read_dtcs(client, clear: bool = False) -> dict:
+    """Every DTC that failed since the last clear, with status, snapshot and extended data;
+    then cleared when asked."""
+    from firmware.diag import dtc as fw_dtc
+    from firmware.diag import uds
+    from firmware.params import GRADE_NAMES, MODE_NAMES
+
+    u16 = lambda b: int.from_bytes(b, "big")   # noqa: E731
     listed = client.get_dtc_by_status_mask(REPORTED).service_data.dtcs
     dtcs = []
     for d in listed:
@@ -172,7 +186,7 @@ def read_all(client, clear: bool = False) -> dict:
                 v = e.raw_data[0]
                 entry[key] = v - 256 if key == "fdc" and v > 127 else v
         dtcs.append(entry)
-    out = {"ecu": ident, "dtcs": dtcs, "cleared": False}
+    out = {"dtcs": dtcs, "cleared": False}
     if clear:
         client.clear_dtc(0xFFFFFF)
         out["cleared"] = True
@@ -246,17 +260,35 @@ def open_tester_bus(interface, channel, secret_file):
             fail(f"--secret-file {secret_file}: {getattr(exc, 'strerror', None) or exc}")
         os.environ[SECRET_ENV] = text
     try:
-        return spec.open(can_filters=[{"can_id": RESPONSE_ID, "can_mask": 0x7FF,
-                                       "extended": False}], node="TESTER")
+        return tester_bus(spec)
     except BusError as exc:
         fail(str(exc))
 
 
-def main(args) -> int:
+def tester_bus(spec):
+    """The tester's bus: DIAG_RESPONSE only, authenticated as TESTER (on a hub, with the
+    secret in the environment)."""
+    return spec.open(can_filters=[{"can_id": RESPONSE_ID, "can_mask": 0x7FF,
+                                   "extended": False}], node="TESTER")
+
+
+def client(bus, timeout: float):
+    """A udsoncan client over can-isotp on the diagnostic IDs (use it as a context)."""
     import isotp
     import udsoncan
     from udsoncan.client import Client
     from udsoncan.connections import PythonIsoTpConnection
+
+    addr = isotp.Address(isotp.AddressingMode.Normal_11bits, txid=REQUEST_ID, rxid=RESPONSE_ID)
+    stack = isotp.CanStack(bus, address=addr, params=ISOTP_PARAMS)
+    config = dict(udsoncan.configs.default_client_config)
+    config.update(data_identifiers=_codecs(), request_timeout=timeout, p2_timeout=timeout,
+                  p2_star_timeout=timeout, use_server_timing=False)
+    return Client(PythonIsoTpConnection(stack), config=config)
+
+
+def main(args) -> int:
+    import udsoncan
 
     from hil.bus import close_bus
     from hil.cli import fail
@@ -264,14 +296,9 @@ def main(args) -> int:
     if not 0 < args.timeout <= 60:
         fail("--timeout must be in (0, 60] s")
     bus = open_tester_bus(args.interface, args.channel, args.secret_file)
-    addr = isotp.Address(isotp.AddressingMode.Normal_11bits, txid=REQUEST_ID, rxid=RESPONSE_ID)
-    stack = isotp.CanStack(bus, address=addr, params=ISOTP_PARAMS)
-    config = dict(udsoncan.configs.default_client_config)
-    config.update(data_identifiers=_codecs(), request_timeout=args.timeout,
-                  p2_timeout=args.timeout, p2_star_timeout=args.timeout, use_server_timing=False)
     try:
-        with Client(PythonIsoTpConnection(stack), config=config) as client:
-            doc = read_all(client, clear=args.clear)
+        with client(bus, args.timeout) as c:
+            doc = read_all(c, clear=args.clear)
     except udsoncan.exceptions.TimeoutException:
         fail(f"no answer from the ECU within {args.timeout:g} s (is the bench running?)", 1)
     except udsoncan.exceptions.NegativeResponseException as exc:

@@ -61,10 +61,47 @@ class FaultSpec:
     name: str
     node: str          # whose path is faulty: plant (transmit), plant_rx, app, config
     ticks: int         # window length (bus faults)
-    safety: bool       # safety-relevant: fail-safe within MAX_REACTION_TICKS
+    safety: bool       # safety-relevant: fail-safe within ``limit`` ticks
     expect: int        # ECU fault bits naming it (0: judged elsewhere)
     what: str
+    limit: int = MAX_REACTION_TICKS   # ticks to the fail-safe state (or the fault bit)
+    dtc: str = ""      # a plausible sensor fault: the DTC that isolates it (read over UDS;
+    #                    "": detected, not isolated: the DTC read is reported, not claimed)
+    plausible: bool = False           # a model-based detection (firmware.diag.fdi)
 
+
+MAX_PLAUSIBLE_TICKS = 200       # plausible sensor faults: detected and fail-safe within 200 ms
+PLAUSIBLE_TICKS = 300            # their windows
+PLAUSIBLE_GAP_TICKS = 2000       # and the fault-free time after each: the tester reads the
+#                                  DTCs over UDS and clears them before the next one
+BIAS_COUNTS = 20                 # BA: 0.29 m/s^2 (the issue's example); WA: 2.9 m/s^2
+GAIN = 1.5
+BA_DRIFT_MPS2_PER_S = 2.0
+WA_DRIFT_MPS2_PER_S = 20.0
+MID_SCALE = 2048
+
+
+def _plausible(name, what, dtc=""):
+    return FaultSpec(name, "plant", PLAUSIBLE_TICKS, True, safety.FAULT_PLAUSIBILITY, what,
+                     limit=MAX_PLAUSIBLE_TICKS, dtc=dtc, plausible=True)
+
+
+PLAUSIBLE = (
+    _plausible("ba_bias", f"body accelerometer +{BIAS_COUNTS} counts (0.29 m/s^2)",
+               "body_accel_plausibility"),
+    _plausible("ba_drift", f"body accelerometer drifting {BA_DRIFT_MPS2_PER_S:g} m/s^2 per s"),
+    _plausible("ba_gain", f"body accelerometer gain x{GAIN:g} around mid-scale"),
+    _plausible("ba_stuck", "body accelerometer stuck at its last count", "body_accel_stuck"),
+    _plausible("wa_bias", f"wheel accelerometer +{BIAS_COUNTS} counts (2.9 m/s^2)"),
+    _plausible("wa_drift", f"wheel accelerometer drifting {WA_DRIFT_MPS2_PER_S:g} m/s^2 per s"),
+    _plausible("wa_gain", f"wheel accelerometer gain x{GAIN:g} around mid-scale"),
+    _plausible("wa_stuck", "wheel accelerometer stuck at its last count", "wheel_accel_stuck"),
+    _plausible("defl_stuck", "deflection sensor stuck at its last count", "susp_defl_stuck"),
+    _plausible("current_stuck", "motor current sensor stuck at mid-scale (0 A)",
+               "motor_current_stuck"),
+)
+_SENSOR_SIGNAL = {"ba": "BODY_ACCEL_RAW", "wa": "WHEEL_ACCEL_RAW", "defl": "SUSP_DEFL_RAW",
+                  "current": "MOTOR_CURRENT_RAW"}
 
 FAULTS = (
     FaultSpec("sensor_loss_single", "plant", 1, True, safety.FAULT_TIMEOUT,
@@ -101,6 +138,7 @@ FAULTS = (
     FaultSpec("replayed_cmd", "plant_rx", 50, True, 0,
               f"the ACTUATOR_CMD of {REPLAY_AGE_TICKS} ticks earlier is replayed to the plant "
               "before every real one for 50 ms"),
+    *PLAUSIBLE,
     FaultSpec("external_sender", "bus", 50, True, 0,
               "an outside bus client sends a forged ACTUATOR_CMD with every tick for 50 ms"),
     FaultSpec("hub_message", "bus", 1, False, 0,
@@ -138,12 +176,16 @@ def schedule(names: Optional[list[str]] = None, warmup: int = 1500,
                 f.node == "bus" and not bus):
             continue
         out.append(Window(f.name, f.node, k, f.ticks))
-        k += f.ticks + gap
+        k += f.ticks + (PLAUSIBLE_GAP_TICKS if f.plausible else gap)
     return out
 
 
 def campaign_ticks(windows: list[Window], gap: int = GAP_TICKS) -> int:
-    return (windows[-1].start + windows[-1].ticks + gap) if windows else 0
+    if not windows:
+        return 0
+    last = windows[-1]
+    return last.start + last.ticks + (PLAUSIBLE_GAP_TICKS if BY_NAME[last.name].plausible
+                                      else gap)
 
 
 class Injector:
@@ -158,6 +200,7 @@ class Injector:
         self._speed_raw: Optional[dict] = None
         self._spam_i = 0
         self._cmds: deque = deque(maxlen=REPLAY_AGE_TICKS)   # the last real commands
+        self._held: dict = {}                                # stuck sensors' counts
 
     @classmethod
     def from_file(cls, path: str, node: str, lockstep: bool = True) -> "Injector":
@@ -218,6 +261,9 @@ class Injector:
         elif name == "adc_stuck_rail":
             out[-1] = _reencode(codec, out[-1], BODY_ACCEL_RAW=4095)
             self._mark(name, k)
+        elif BY_NAME[name].plausible:
+            out[-1] = self._sensor_fault(codec, out[-1], name, k - w.start)
+            self._mark(name, k)
         elif name == "out_of_range":
             for i, f in enumerate(out):
                 if f[0] == ID["VEHICLE_SPEED"]:
@@ -232,6 +278,28 @@ class Injector:
                 out.insert(0, plant.tx.frame("VEHICLE_SPEED", self._speed_raw))
                 self._mark(name, k)
         return out
+
+    def _sensor_fault(self, codec, frame: Frame, name: str, t: int) -> Frame:
+        """A plausible sensor fault on the PLANT_SENSORS frame (``t``: ticks into it)."""
+        channel, kind = name.rsplit("_", 1)
+        sig = _SENSOR_SIGNAL[channel]
+        raw = codec.decode(frame[0], frame[1], scaling=False).signals[sig]
+        if kind == "bias":
+            v = raw + BIAS_COUNTS
+        elif kind == "gain":
+            v = MID_SCALE + round(GAIN * (raw - MID_SCALE))
+        elif kind == "drift":
+            from hil.config import default_vehicle     # (the campaign's car)
+
+            sens = default_vehicle().sensors
+            rate, ch = ((BA_DRIFT_MPS2_PER_S, sens.body_accel) if channel == "ba" else
+                        (WA_DRIFT_MPS2_PER_S, sens.wheel_accel))
+            v = raw + round(rate * t * default_vehicle().sim.plant_dt_s / ch.lsb)
+        elif channel == "current":
+            v = MID_SCALE
+        else:                                     # stuck at the first count of the window
+            v = self._held.setdefault(name, raw)
+        return _reencode(codec, frame, **{sig: min(4095, max(0, int(v)))})
 
     # -- plant: receive ------------------------------------------------------------------------
 
@@ -313,11 +381,16 @@ class Result:
     failsafe_ticks: int = 0
     mode_kept: Optional[bool] = None
     note: str = ""
+    dtc: list = None                  # plausible faults: the DTCs read over UDS after it
+    detect_ms: Optional[float] = None  # first faulty tick to detection
+    isolated: Optional[bool] = None   # the DTC naming the faulty channel confirmed (None:
+    #                                   not claimed for this fault)
+    snapshot_ok: Optional[bool] = None  # its snapshot: in the window, the drive's speed
 
 
 def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
           faults_seen: list, ticks_run: int, crash: Optional[str], mode: int,
-          hub_log: str = "") -> list[Result]:
+          hub_log: str = "", dtcs: Optional[dict] = None) -> list[Result]:
     """Per bus fault: read the ECU's and the plant's per-tick records around its window (and
     the hub's log, for an outside client's frames)."""
     faults = np.asarray(ecu_tr["faults"], dtype=np.int64)
@@ -361,12 +434,44 @@ def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
         kept = None
         if spec.node == "app":
             kept = bool(np.all((modes[seg] == mode) | (modes[seg] == fp.MODE_PASSIVE)))
-        out.append(Result(
+        r = Result(
             w.name, detected, reaction, recovered, crashed, spec.safety,
             recovery_ticks=max(0, last_bad - last) if recovered else None, driver_told=told,
             fault_bits=bits, failsafe_ticks=int(np.count_nonzero(~enable[seg])),
-            mode_kept=kept, note=NOTES.get(w.name, "")))
+            mode_kept=kept, note=NOTES.get(w.name, ""))
+        if spec.plausible:
+            _judge_dtc(r, spec, first, w, (dtcs or {}).get(w.name))
+        out.append(r)
     return out
+
+
+SNAPSHOT_SPEED_TOL_MPS = 0.2
+
+
+def _judge_dtc(r: Result, spec: FaultSpec, first: int, w: Window, read: Optional[dict]) -> None:
+    """A plausible fault's DTCs as the tester read them over UDS after its window: each
+    confirmed, with a snapshot taken inside the window at the drive's speed; ``isolated``:
+    the DTC naming the faulty channel is among them (where the fault claims it)."""
+    from hil.config import default_vehicle
+
+    dt_ms = default_vehicle().sim.plant_dt_s * 1e3
+    r.detect_ms = None if r.reaction_ticks is None else r.reaction_ticks * dt_ms
+    if read is None or "error" in read:
+        r.dtc = []
+        r.note = (read or {}).get("error", "the DTCs were not read")
+        r.snapshot_ok = False
+        r.isolated = False if spec.dtc else None
+        return
+    got = [d for d in read["dtcs"] if d["status"] & 0x08]          # confirmed
+    r.dtc = [f"{d['code']} {d['name']}" for d in got]
+    if "read_ticks" in read:
+        r.note = f"DTCs read over UDS and cleared in {read['read_ticks']} ticks"
+    r.snapshot_ok = bool(got) and all(
+        "snapshot" in d and first <= d["snapshot"]["tick"] < w.start + w.ticks
+        and abs(d["snapshot"]["speed_mps"] - CAMPAIGN_SPEED_MPS) <= SNAPSHOT_SPEED_TOL_MPS
+        for d in got)
+    if spec.dtc:
+        r.isolated = any(d["name"] == spec.dtc for d in got)
 
 
 ATTACKS = ("forged_cmd", "replayed_cmd", "external_sender", "hub_message")
@@ -444,6 +549,90 @@ def _attacker(windows: list[Window], spec, marks: dict, stop, on_bus: dict) -> N
         from hil.bus import close_bus
 
         close_bus(bus)
+
+
+DTC_READ_AFTER = 1000           # ticks after a plausible fault's window: its DTCs are read
+DTC_CLEAR_BEFORE = 300          # ... and before the first one, the DTCs of the earlier faults
+#                                 are cleared (so each snapshot is the fault's own)
+
+
+def _read_points(windows: list[Window]) -> list[tuple[int, Optional[Window]]]:
+    """(tick, window) of the tester's reads, each followed by a clear; window None: a clear
+    before the first plausible fault."""
+    points = [(w.start + w.ticks + DTC_READ_AFTER, w) for w in windows
+              if BY_NAME[w.name].plausible]
+    if points:
+        first = next(w for w in windows if BY_NAME[w.name].plausible)
+        points.insert(0, (max(0, first.start - DTC_CLEAR_BEFORE), None))
+    return points
+
+
+def _tester(windows: list[Window], spec, out: Path, reads: dict, stop) -> None:
+    """The campaign's UDS tester: udsoncan over can-isotp, as ``python -m hil diag`` (on a hub
+    authenticated as TESTER with the run's hub.secret). It counts the plant's ticks from the
+    bus; ``DTC_READ_AFTER`` ticks after each plausible fault's window it reads the DTCs
+    (status, snapshot, extended data) and clears them, and says so when the read was not
+    over before the next fault began."""
+    points = _read_points(windows)
+    if not points:
+        return
+    import os
+
+    from hil import diag
+    from hil.auth import SECRET_ENV
+    from hil.bus import close_bus
+
+    if spec.interface == "remote":
+        os.environ[SECRET_ENV] = (out / "hub.secret").read_text().strip()
+    ticks = spec.open(can_filters=[{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
+                                   for n in ("PLANT_SENSORS", "SIM_TICK")])
+    bus = None
+    try:
+        bus = diag.tester_bus(spec)
+        with diag.client(bus, timeout=2.0) as client:
+            k = -1
+            while not stop.is_set() and points:
+                msg = ticks.recv(0.2)
+                if msg is None:
+                    continue
+                k += 1
+                at, w = points[0]
+                if k < at:
+                    continue
+                points.pop(0)
+                try:
+                    doc = diag.read_dtcs(client, clear=True)
+                except Exception as exc:  # noqa: BLE001 - a failed read is a finding
+                    doc = {"error": f"UDS read failed: {type(exc).__name__}: {exc}"}
+                while ticks.recv(0) is not None:       # the ticks that passed meanwhile
+                    k += 1
+                doc["read_ticks"] = k - at
+                later = [x for x in windows if x.start >= at]
+                if later and k >= later[0].start and "error" not in doc:
+                    doc = {"error": f"the read ended at tick {k}, after the next fault began"}
+                reads[w.name if w else "(clear)"] = doc
+    finally:
+        close_bus(ticks)
+        if bus is not None:
+            close_bus(bus)
+
+
+def _read_memory(node) -> dict:
+    """In process (no bus): the DTCs straight from the ECU's memory, as the tester reports
+    them, then cleared (``--in-process`` only; the bus campaign reads them over UDS)."""
+    from firmware.diag import dtc as fw
+    from hil.diag import dtc_label
+
+    out = []
+    for i, e in enumerate(node.state.diag.dtc.entries):
+        if e.status & 0x2F:
+            d = fw.DTCS[i]
+            snap = e.snapshot
+            out.append({"code": dtc_label(d.code), "name": d.name, "status": e.status,
+                        **({"snapshot": {"tick": snap.tick, "speed_mps": snap.speed_cmps / 100}}
+                           if snap else {})})
+    fw.clear(node.state.diag.dtc, 0xFFFFFF)
+    return {"dtcs": out}
 
 
 def _malformed_hub_message(url: str) -> None:
@@ -542,6 +731,15 @@ def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
     ecu_node = nodes.EcuNode(ecu_params(cfg, CAMPAIGN_MODE), codec, key=key)
     app = app_node(codec, CAMPAIGN_MODE, dt, key=key)
     app.inject = Injector(windows, "app")
+    points, reads, tick = _read_points(windows), {}, ecu_node.tick
+
+    def ticking():
+        while points and ecu_node.k >= points[0][0]:
+            w = points.pop(0)[1]
+            reads[w.name if w else "(clear)"] = _read_memory(ecu_node)
+        return tick()
+
+    ecu_node.tick = ticking
     crash = None
     try:
         nodes.run_in_process(plant, ecu_node, app)
@@ -549,7 +747,8 @@ def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
         crash = f"{type(exc).__name__}: {exc}"
     return {"ecu": ecu_node.trace(), "plant": plant.trace(),
             "applied": {**plant.inject.applied, **app.inject.applied},
-            "faults_seen": app.faults_seen, "ticks": ecu_node.k, "crash": crash}
+            "faults_seen": app.faults_seen, "ticks": ecu_node.k, "crash": crash,
+            "dtcs": reads}
 
 
 def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
@@ -570,14 +769,16 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
         driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
         inject=str(plan), key_file=None, outside_frames={})
     marks: dict = {}
+    reads: dict = {}
     stop = threading.Event()
     threads: list = []
 
-    def attach(spec):                 # the outside client, once the bus is up
-        t = threading.Thread(target=_attacker, args=(windows, spec, marks, stop,
-                                                     args.outside_frames), daemon=True)
-        t.start()
-        threads.append(t)
+    def attach(spec):                 # the outside clients, once the bus is up
+        for target, extra in ((_attacker, (windows, spec, marks, stop, args.outside_frames)),
+                              (_tester, (windows, spec, out, reads, stop))):
+            t = threading.Thread(target=target, args=extra, daemon=True)
+            t.start()
+            threads.append(t)
 
     with contextlib.redirect_stdout(sys.stderr):
         code = supervisor.run(args, on_bus=attach)
@@ -601,7 +802,7 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
             "applied": {**sums["plant"].get("injected", {}), **sums["app"].get("injected", {}),
                         **marks},
             "faults_seen": [tuple(e) for e in sums["app"]["faults_seen"]],
-            "ticks": len(ecu_tr["faults"]), "crash": crash,
+            "ticks": len(ecu_tr["faults"]), "crash": crash, "dtcs": reads,
             "hub_log": hub_log.read_text(errors="replace") if hub_log.exists() else ""}
 
 
@@ -618,7 +819,7 @@ def campaign(out: Path, *, in_process: bool = False, seed: int = 1,
                else run_over_bus(windows, out, seed, interface, channel))
         results += judge(windows, run["ecu"], run["plant"], run["applied"],
                          run["faults_seen"], run["ticks"], run["crash"],
-                         fp.MODE_COMFORT, run.get("hub_log", ""))
+                         fp.MODE_COMFORT, run.get("hub_log", ""), run.get("dtcs"))
         if run["crash"]:
             print(f"faults: {run['crash']}", file=sys.stderr, flush=True)
     results += config_faults(out / "config", names)
@@ -640,9 +841,12 @@ def passed(results: list[Result]) -> bool:
 
 
 def _holds(r: Result) -> bool:
+    spec = BY_NAME[r.fault]
     return (r.detected and not r.crashed
-            and (not r.safety_relevant or (r.reaction_ticks or 0) <= MAX_REACTION_TICKS)
-            and r.recovered is not False)
+            and (not r.safety_relevant or (r.reaction_ticks or 0) <= spec.limit)
+            and r.recovered is not False
+            and (not spec.plausible or (bool(r.dtc) and r.snapshot_ok
+                                        and r.isolated is not False)))
 
 
 def checks(results: list[Result]) -> list:
@@ -652,9 +856,13 @@ def checks(results: list[Result]) -> list:
 
     out = []
     for r in results:
-        limit = "detected" + (f", fail-safe within {MAX_REACTION_TICKS} ticks"
+        spec = BY_NAME[r.fault]
+        limit = "detected" + (f", fail-safe within {spec.limit} ticks"
                               if r.safety_relevant else "")
         limit += ", recovered" if r.recovered is not None else ""
+        if spec.plausible:
+            limit += ", DTC confirmed with its snapshot" + (
+                f", {spec.dtc}" if spec.dtc else "")
         if r.crashed:
             value = "crashed"
         elif not r.detected:
@@ -663,6 +871,10 @@ def checks(results: list[Result]) -> list:
             value = f"reaction {r.reaction_ticks} ticks, not recovered"
         else:
             value = f"reaction {r.reaction_ticks} ticks"
+        if spec.plausible:
+            value += f"; DTC {', '.join(r.dtc or []) or 'none'}" + (
+                "" if r.snapshot_ok else ", snapshot wrong or missing") + (
+                ", not isolated" if r.isolated is False else "")
         out.append(Check(f"fault.{r.fault}", value, limit, _holds(r)))
     return out
 
@@ -674,7 +886,7 @@ def _table(results: list[Result]) -> None:
     t = Table(title=f"fault campaign: ECU in {CAMPAIGN_MODE} mode, grade {CAMPAIGN_GRADE} at "
                     f"{CAMPAIGN_SPEED_MPS:g} m/s, lockstep (ticks of 1 ms)")
     for col in ("fault", "safety", "detected", "reaction", "recovered", "recovery", "crashed",
-                "driver told", "fault bits"):
+                "driver told", "fault bits", "dtc", "detect_ms", "isolated"):
         t.add_column(col, no_wrap=True)
 
     def cell(v, bad=False):
@@ -691,7 +903,9 @@ def _table(results: list[Result]) -> None:
             "plant_rx": "(plant: passive fallback)"}.get(node, "")
         t.add_row(r.fault, cell(r.safety_relevant), cell(r.detected, True),
                   cell(r.reaction_ticks), cell(r.recovered, True), cell(r.recovery_ticks),
-                  "YES" if r.crashed else "no", cell(r.driver_told, True), bits)
+                  "YES" if r.crashed else "no", cell(r.driver_told, True), bits,
+                  ", ".join(d.split()[0] for d in r.dtc) if r.dtc else "-",
+                  cell(r.detect_ms), cell(r.isolated, True))
     console = Console()
     if not console.is_terminal:
         console = Console(width=200)
@@ -725,10 +939,14 @@ def main(args) -> int:
         print(json.dumps(doc, indent=1))
     else:
         _table(results)
+        frame = [r for r in results if r.safety_relevant and not BY_NAME[r.fault].plausible]
+        plaus = [r for r in results if BY_NAME[r.fault].plausible]
         print(f"{sum(r.detected for r in results)}/{len(results)} detected, "
               f"{sum(r.crashed for r in results)} crashed, max safety reaction "
-              f"{max((r.reaction_ticks or 0) for r in results if r.safety_relevant)} ticks "
-              f"(limit {MAX_REACTION_TICKS}); {time.monotonic() - t0:.1f} s; "
-              f"{Path(args.out) / 'faults.json'}")
+              f"{max((r.reaction_ticks or 0) for r in frame) if frame else 0} ticks "
+              f"(limit {MAX_REACTION_TICKS})"
+              + (f", plausible sensor faults {max((r.reaction_ticks or 0) for r in plaus)} "
+                 f"ticks (limit {MAX_PLAUSIBLE_TICKS})" if plaus else "")
+              + f"; {time.monotonic() - t0:.1f} s; {Path(args.out) / 'faults.json'}")
         verdict.render(doc)
     return verdict.exit_code(doc)

@@ -5,6 +5,9 @@ jitter, GA tuning time. Writes ``out/bench.json`` and prints a table.
 
 Keys (the contract): ``ecu_step_us_p50``, ``ecu_step_us_p99`` (float path),
 ``ecu_step_fixed_us_p50``, ``ecu_step_fixed_us_p99`` (the fixed-point path in Python),
+``ecu_tick_us_p99`` and ``ecu_tick_with_tester_us_p99`` (the ECU node's tick without and with
+a UDS tester's requests between the ticks), ``uds_request_us_p50``/``_p99`` (one request,
+ISO-TP and dispatch, answer included),
 ``sil_rtf`` (simulated s per wall s of ``hil sim`` on the default route), ``hil_lockstep_rtf``
 (``hil run --pace lockstep`` over the hub), ``realtime_missed_deadline_ratio`` (60 s at 1 kHz,
 ``--pace realtime``), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
@@ -70,6 +73,56 @@ def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     finally:
         nodes.ecu.step = real
     return np.array(times[100:], dtype=float) / 1000.0
+
+
+TESTER_EVERY_TICKS = 20            # a request every 20 ms: 50 per second
+
+
+def ecu_tick_times_with_tester(ticks: int, tester: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The ECU node's tick (sensor frame in, command and status out: what the plant waits
+    for) in a lockstep SIL drive, with or without a tester's UDS requests between the ticks
+    (every ``TESTER_EVERY_TICKS``: 0x22 of four DIDs, then 0x19 0x0A, a 99-byte answer in
+    15 frames after the tester's flow control, in turn). Returns (tick times, request
+    times) in microseconds."""
+    from hil import nodes, sil
+    from hil.config import default_vehicle
+    from hil.nodes import ID
+    from hil.road import load_route
+
+    reqs = (bytes([0x09, 0x22, 0x01, 0x00, 0x01, 0x01, 0x01, 0x03, 0x01, 0x06]),
+            bytes([0x02, 0x19, 0x0A]))
+    flow = bytes([0x30, 0, 0]).ljust(8, b"\xcc")
+    tick_t: list[int] = []
+    req_t: list[int] = []
+    real = nodes.EcuNode.tick
+
+    def timed(self):
+        k = self.k
+        if tester and k and k % TESTER_EVERY_TICKS == 0:
+            req = reqs[(k // TESTER_EVERY_TICKS) % 2]
+            t0 = time.perf_counter_ns()
+            if len(req) <= 8:
+                answer = self.on_frame(ID["DIAG_REQUEST"], req.ljust(8, b"\xcc"))
+            else:                      # a two-frame request: first frame, then consecutive
+                answer = self.on_frame(ID["DIAG_REQUEST"], bytes([0x10, len(req) - 1])
+                                       + req[1:7])
+                answer += self.on_frame(ID["DIAG_REQUEST"], bytes([0x21]) + req[7:].ljust(
+                    7, b"\xcc"))
+            if answer and answer[-1][1][0] >> 4 == 1:          # first frame: flow control
+                self.on_frame(ID["DIAG_REQUEST"], flow)
+            req_t.append(time.perf_counter_ns() - t0)
+        t0 = time.perf_counter_ns()
+        out = real(self)
+        tick_t.append(time.perf_counter_ns() - t0)
+        return out
+
+    nodes.EcuNode.tick = timed
+    try:
+        sil.run(default_vehicle(), load_route("full_road_section"), "comfort", 1,
+                duration_s=ticks * default_vehicle().sim.plant_dt_s)
+    finally:
+        nodes.EcuNode.tick = real
+    return (np.array(tick_t[100:], dtype=float) / 1000.0, np.array(req_t, dtype=float) / 1000.0)
 
 
 def sil_rtf(duration_s: float | None) -> float:
@@ -155,6 +208,14 @@ def run(quick: bool, progress=print) -> dict:
     t = ecu_step_times(step_s, True)
     out["ecu_step_fixed_us_p50"], out["ecu_step_fixed_us_p99"] = (
         float(np.percentile(t, q)) for q in (50, 99))
+    progress("ECU node tick without and with a UDS tester ...")
+    n = 2000 if quick else 20000
+    plain, _ = ecu_tick_times_with_tester(n, False)
+    busy, req = ecu_tick_times_with_tester(n, True)
+    out["ecu_tick_us_p99"] = float(np.percentile(plain, 99))
+    out["ecu_tick_with_tester_us_p99"] = float(np.percentile(busy, 99))
+    out["uds_request_us_p50"], out["uds_request_us_p99"] = (
+        float(np.percentile(req, q)) for q in (50, 99))
     progress("SecOC per frame ...")
     out["secoc_sign_us"], out["secoc_verify_us"] = secoc_us(2000 if quick else 20000)
     progress("hil sim, full_road_section ...")

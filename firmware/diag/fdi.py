@@ -3,17 +3,18 @@
 Each tick, after the Kalman filter's correction (``firmware.ecu`` stage 2):
 
 * **Innovation tests** (one per measurement: BA, SWS, WA). The filter's innovation eps_j is
-  normalised by its variance under the model, S_jj = (H P H^T)_jj rho + max(R0_jj, R-hat_jj)
-  + D_j^2 var_F: P is the filter's own covariance; rho >= 1 scales it to the road intensity
-  the grade estimate measured where the filter's process noise is capped below it; R0 is the
-  sensor noise (with ADC quantisation), or the filter's adapted R-hat where that is larger;
-  var_F is the uncertainty of the force taken from the measured current (the screw's
+  normalised by its variance under the model, S_jj = (H P H^T)_jj rho + R0_jj + D_j^2 var_F:
+  P is the filter's own covariance; rho >= 1 scales it to the road intensity the grade
+  estimate measured where the filter's process noise is capped below it; R0 is the sensor
+  noise (with ADC quantisation; not the adapted R-hat, which a fault or a sensor loss
+  inflates for seconds); var_F is the uncertainty of the force taken from the measured current (the screw's
   efficiency applies one way and its inverse the other, so the force lies in a band of width
   |F| (1/eta - eta), uniform: /12; and it changes within the tick: (dF/2)^2). Under the model
   the normalised squares are chi^2(1); their EWMA over W ticks is about chi^2_W / W, and an
   alarm above chi^2_W(1 - alpha) / W has a false-alarm probability alpha per window. The
   statistics hold while the linear model is known not to apply (suspension stroke beyond the
-  bump-stop clearance, tyre deflection beyond the static one: lift-off) and for
+  bump-stop clearance, tyre deflection beyond the static one: lift-off) or the inputs are
+  not measurements (an ADC or frame fault: the filter ran on held values), and for
   ``hold_ticks`` afterwards. ``nis_verdicts`` says which tests report (WA's does not: its
   innovation is the road's, whose roughness steps at a segment boundary).
 * **Flatline tests** (BA, WA, SWS, current): white noise of std sigma on an ADC of step q gives
@@ -72,17 +73,20 @@ class FdiState:
     first_failed: list = field(default_factory=lambda: [-1] * N_TESTS)  # tick, since start
 
 
-def step(P: EcuParams, st: FdiState, tick: int, eps, hph, r_hat, rho: float, force_meas: float,
+def step(P: EcuParams, st: FdiState, tick: int, eps, hph, rho: float, force_meas: float,
          counts: tuple, defl: float, dtd_est: float, i_meas: float, v_rel: float,
-         var_v_rel: float, a_rel: float) -> int:
+         var_v_rel: float, a_rel: float, inputs_valid: bool) -> int:
     """One tick of every test; returns the failed bits (also in ``st.failed``). ``eps``,
-    ``hph``, ``r_hat``: the filter's innovation, diag(H P H^T) and diag(R-hat); ``counts``:
-    this tick's ADC counts of BA, WA, SWS, current (None when the ADC had none: no flatline
-    verdict); ``defl``: the measured stroke; ``dtd_est``: the estimated tyre deflection;
-    ``v_rel``, ``var_v_rel``: the estimated relative velocity and its variance; ``a_rel``:
-    BA - WA."""
+    ``hph``: the filter's innovation and diag(H P H^T); ``counts``: this tick's ADC counts of
+    BA, WA, SWS, current (None when the ADC had none: no flatline verdict); ``defl``: the
+    measured stroke; ``dtd_est``: the estimated tyre deflection; ``v_rel``, ``var_v_rel``:
+    the estimated relative velocity and its variance; ``a_rel``: BA - WA; ``inputs_valid``:
+    no ADC or frame fault this tick (else the innovation tests hold, as where the model does
+    not apply: the filter ran on held values)."""
     settled = tick >= P.fdi.settle_ticks
-    f1, c1 = _innovation(P, st, tick, settled, eps, hph, r_hat, rho, force_meas, defl, dtd_est)
+    if not inputs_valid:
+        st.invalid_until = tick + P.fdi.hold_ticks
+    f1, c1 = _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, dtd_est)
     f2, c2 = _flatline(P, st, settled, counts)
     f3, c3 = _actuator(P, st, settled, counts[3] is not None, i_meas, v_rel, var_v_rel, a_rel,
                        bool(f2 & 1 << T_FLAT_CUR))
@@ -95,7 +99,7 @@ def step(P: EcuParams, st: FdiState, tick: int, eps, hph, r_hat, rho: float, for
     return failed
 
 
-def _innovation(P, st, tick, settled, eps, hph, r_hat, rho, force_meas, defl, dtd_est):
+def _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, dtd_est):
     """The innovation tests: (failed, completed) bits."""
     F, A = P.fdi, P.akf
     failed = completed = 0
@@ -109,7 +113,7 @@ def _innovation(P, st, tick, settled, eps, hph, r_hat, rho, force_meas, defl, dt
     lam, clip = F.nis_lambda, F.clip
     for j in range(len(eps)):
         d = A.D.item(j)
-        s = hph[j] * rho + max(A.r0.item(j, j), r_hat[j]) + d * d * var_f
+        s = hph[j] * rho + A.r0.item(j, j) + d * d * var_f
         v = eps[j] * eps[j] / s
         if not math.isfinite(v):
             continue                              # (a diverged filter is its own fault)
