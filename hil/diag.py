@@ -174,7 +174,8 @@ def read_dtcs(client, clear: bool = False) -> dict:
             raw = s.data
             g, m = raw[6], raw[7]
             entry["snapshot"] = {
-                "tick": int.from_bytes(raw[0:4], "big"), "speed_mps": u16(raw[4:6]) / 100,
+                "tick": int.from_bytes(raw[0:4], "big"),
+                "speed_mps": None if u16(raw[4:6]) == 0xFFFF else u16(raw[4:6]) / 100,
                 "grade": GRADE_NAMES[g] if g < len(GRADE_NAMES) else "unknown",
                 "mode": MODE_NAMES[m] if m < len(MODE_NAMES) else m,
                 "ba_rms_mps2": u16(raw[8:10]) / 1000, "dtd_rms_m": u16(raw[10:12]) / 1e6,
@@ -213,7 +214,8 @@ def render(doc: dict) -> str:
             t.add_column(col)
         for d in doc["dtcs"]:
             s = d.get("snapshot")
-            snap = (f"{s['tick']}, {s['speed_mps']:.2f} m/s, {s['grade']}, {s['mode']}, "
+            speed = "?" if s["speed_mps"] is None else f"{s['speed_mps']:.2f}"
+            snap = (f"{s['tick']}, {speed} m/s, {s['grade']}, {s['mode']}, "
                     f"{s['ba_rms_mps2']:.3f} m/s2, {s['dtd_rms_m'] * 1e3:.2f} mm") if s else "-"
             t.add_row(d["code"], d["name"], f"0x{d['status']:02X}", str(d.get("occurrences", "")),
                       snap)

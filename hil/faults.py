@@ -75,10 +75,9 @@ PLAUSIBLE_TICKS = 300            # their windows
 PLAUSIBLE_GAP_TICKS = 2000       # and the fault-free time after each: the tester reads the
 #                                  DTCs over UDS and clears them before the next one
 BIAS_COUNTS = 20                 # BA: 0.29 m/s^2 (the example); WA: 2.9 m/s^2
-GAIN = 1.5
+GAIN = 1.5                       # around mid-scale
 BA_DRIFT_MPS2_PER_S = 2.0
 WA_DRIFT_MPS2_PER_S = 20.0
-MID_SCALE = 2048
 
 
 def _plausible(name, what, dtc=""):
@@ -284,10 +283,12 @@ class Injector:
         channel, kind = name.rsplit("_", 1)
         sig = _SENSOR_SIGNAL[channel]
         raw = codec.decode(frame[0], frame[1], scaling=False).signals[sig]
+        full = int(codec.message("PLANT_SENSORS").get_signal_by_name(sig).maximum)
+        mid = (full + 1) // 2
         if kind == "bias":
             v = raw + BIAS_COUNTS
         elif kind == "gain":
-            v = MID_SCALE + round(GAIN * (raw - MID_SCALE))
+            v = mid + round(GAIN * (raw - mid))
         elif kind == "drift":
             from hil.config import default_vehicle     # (the campaign's car)
 
@@ -296,10 +297,10 @@ class Injector:
                         (WA_DRIFT_MPS2_PER_S, sens.wheel_accel))
             v = raw + round(rate * t * default_vehicle().sim.plant_dt_s / ch.lsb)
         elif channel == "current":
-            v = MID_SCALE
+            v = mid                               # (0 A: the range is symmetric)
         else:                                     # stuck at the first count of the window
             v = self._held.setdefault(name, raw)
-        return _reencode(codec, frame, **{sig: min(4095, max(0, int(v)))})
+        return _reencode(codec, frame, **{sig: min(full, max(0, int(v)))})
 
     # -- plant: receive ------------------------------------------------------------------------
 
@@ -468,6 +469,7 @@ def _judge_dtc(r: Result, spec: FaultSpec, first: int, w: Window, read: Optional
         r.note = f"DTCs read over UDS and cleared in {read['read_ticks']} ticks"
     r.snapshot_ok = bool(got) and all(
         "snapshot" in d and first <= d["snapshot"]["tick"] < w.start + w.ticks
+        and d["snapshot"]["speed_mps"] is not None
         and abs(d["snapshot"]["speed_mps"] - CAMPAIGN_SPEED_MPS) <= SNAPSHOT_SPEED_TOL_MPS
         for d in got)
     if spec.dtc:
@@ -582,13 +584,20 @@ def _tester(windows: list[Window], spec, out: Path, reads: dict, stop) -> None:
     from hil.auth import SECRET_ENV
     from hil.bus import close_bus
 
-    if spec.interface == "remote":
-        os.environ[SECRET_ENV] = (out / "hub.secret").read_text().strip()
-    ticks = spec.open(can_filters=[{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
-                                   for n in ("PLANT_SENSORS", "SIM_TICK")])
-    bus = None
+    ticks = bus = None
     try:
-        bus = diag.tester_bus(spec)
+        ticks = spec.open(can_filters=[{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
+                                       for n in ("PLANT_SENSORS", "SIM_TICK")])
+        before = os.environ.get(SECRET_ENV)
+        if spec.interface == "remote":     # (the secret only for this open)
+            os.environ[SECRET_ENV] = (out / "hub.secret").read_text().strip()
+        try:
+            bus = diag.tester_bus(spec)
+        finally:
+            if before is None:
+                os.environ.pop(SECRET_ENV, None)
+            else:
+                os.environ[SECRET_ENV] = before
         with diag.client(bus, timeout=2.0) as client:
             k = -1
             while not stop.is_set() and points:
@@ -611,10 +620,14 @@ def _tester(windows: list[Window], spec, out: Path, reads: dict, stop) -> None:
                 if later and k >= later[0].start and "error" not in doc:
                     doc = {"error": f"the read ended at tick {k}, after the next fault began"}
                 reads[w.name if w else "(clear)"] = doc
+    except Exception as exc:  # noqa: BLE001 - the tester could not work: every read says so
+        for _, w in points:
+            reads.setdefault(w.name if w else "(clear)",
+                             {"error": f"the UDS tester failed: {type(exc).__name__}: {exc}"})
     finally:
-        close_bus(ticks)
-        if bus is not None:
-            close_bus(bus)
+        for b in (ticks, bus):
+            if b is not None:
+                close_bus(b)
 
 
 def _read_memory(node) -> dict:
@@ -629,7 +642,8 @@ def _read_memory(node) -> dict:
             d = fw.DTCS[i]
             snap = e.snapshot
             out.append({"code": dtc_label(d.code), "name": d.name, "status": e.status,
-                        **({"snapshot": {"tick": snap.tick, "speed_mps": snap.speed_cmps / 100}}
+                        **({"snapshot": {"tick": snap.tick, "speed_mps": None
+                                         if snap.speed_cmps == 0xFFFF else snap.speed_cmps / 100}}
                            if snap else {})})
     fw.clear(node.state.diag.dtc, 0xFFFFFF)
     return {"dtcs": out}
