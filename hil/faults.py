@@ -465,8 +465,6 @@ def _judge_dtc(r: Result, spec: FaultSpec, first: int, w: Window, read: Optional
         return
     got = [d for d in read["dtcs"] if d["status"] & 0x08]          # confirmed
     r.dtc = [f"{d['code']} {d['name']}" for d in got]
-    if "read_ticks" in read:
-        r.note = f"DTCs read over UDS and cleared in {read['read_ticks']} ticks"
     r.snapshot_ok = bool(got) and all(
         "snapshot" in d and first <= d["snapshot"]["tick"] < w.start + w.ticks
         and d["snapshot"]["speed_mps"] is not None
@@ -615,7 +613,6 @@ def _tester(windows: list[Window], spec, out: Path, reads: dict, stop) -> None:
                     doc = {"error": f"UDS read failed: {type(exc).__name__}: {exc}"}
                 while ticks.recv(0) is not None:       # the ticks that passed meanwhile
                     k += 1
-                doc["read_ticks"] = k - at
                 later = [x for x in windows if x.start >= at]
                 if later and k >= later[0].start and "error" not in doc:
                     doc = {"error": f"the read ended at tick {k}, after the next fault began"}
