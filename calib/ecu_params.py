@@ -226,8 +226,7 @@ GENERATOR_VERSION = 1
 def inputs_digest(cfg: VehicleConfig, gains_file: Path | None, opts: DesignOptions) -> str:
     h = hashlib.sha256()
     h.update(f"{GENERATOR} v{GENERATOR_VERSION}\n".encode())
-    src = Path(cfg.source)
-    h.update(src.read_bytes() if src.is_file() else repr(cfg).encode())
+    h.update(_vehicle_bytes(cfg))
     gains = gains_file or default_gains_path(cfg)
     h.update(Path(gains).read_bytes() if Path(gains).is_file() else b"<tuned at build time>")
     h.update(json.dumps(dataclasses.asdict(opts), sort_keys=True).encode())
@@ -297,11 +296,14 @@ def fdi_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.FdiParams:
         nis_verdicts=FDI_NIS_VERDICTS)
 
 
-def _vehicle_sha256(cfg: VehicleConfig) -> bytes:
-    import hashlib
-
+def _vehicle_bytes(cfg: VehicleConfig) -> bytes:
+    """The vehicle file as read (or the configuration's text when it came from no file)."""
     src = Path(cfg.source)
-    return hashlib.sha256(src.read_bytes() if src.is_file() else repr(cfg).encode()).digest()
+    return src.read_bytes() if src.is_file() else repr(cfg).encode()
+
+
+def _vehicle_sha256(cfg: VehicleConfig) -> bytes:
+    return hashlib.sha256(_vehicle_bytes(cfg)).digest()
 
 
 def with_controllers(params: fp.EcuParams, mode: int, controller: int) -> fp.EcuParams:

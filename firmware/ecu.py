@@ -15,7 +15,7 @@ from firmware import adc, akf, diag, grade, modes, safety
 from firmware.diag import dtc, fdi
 from firmware.fixedpoint import round_half_away as rha
 from firmware.params import MODE_ENERGY, EcuParams
-from firmware.path import FixedPath, FloatPath
+from firmware.path import FX_CHANNELS, FixedPath, FloatPath
 
 
 # Inputs and Outputs are immutable records (NamedTuples: built in 0.5 us each, every tick).
@@ -156,8 +156,8 @@ INPUT_FAULTS = (sum(adc.FAULT_BIT.values()) | safety.FAULT_DLC | safety.FAULT_CH
 def _good_counts(st: EcuState) -> tuple:
     """This tick's counts of BA, WA, SWS, current where the ADC found them good, else None."""
     ch = st.adc.channels
-    return tuple(None if c.faulty or c.good_count == 0 else c.counts for c in (
-        ch["body_accel"], ch["wheel_accel"], ch["susp_defl"], ch["motor_current"]))
+    return tuple(None if c.faulty or c.good_count == 0 else c.counts
+                 for c in (ch[name] for name in FX_CHANNELS))
 
 
 def _road_per_mps(st: EcuState) -> float:

@@ -25,12 +25,15 @@ def node_token(secret: bytes, node: str) -> str:
     return hmac.new(secret, b"hil.hub node " + node.encode(), hashlib.sha256).hexdigest()
 
 
-def credentials(node: Optional[str]) -> dict:
-    """The bus-request fields that make a hub client ``node`` (none without the secret)."""
-    secret = os.environ.get(SECRET_ENV)
+def credentials(node: Optional[str], secret: Optional[bytes] = None) -> dict:
+    """The bus-request fields that make a hub client ``node``: with ``secret``, else the one
+    in the environment (none without either)."""
+    if secret is None:
+        env = os.environ.get(SECRET_ENV)
+        secret = bytes.fromhex(env) if env else None
     if node is None or not secret:
         return {}
-    return {"hil_node": node, "hil_token": node_token(bytes.fromhex(secret), node)}
+    return {"hil_node": node, "hil_token": node_token(secret, node)}
 
 
 def dbc_senders(path=None) -> dict[str, frozenset]:

@@ -134,13 +134,14 @@ class BusSpec:
     channel: str
 
     def open(self, timeout_s: float = 5.0, can_filters: Optional[list[dict]] = None,
-             node: Optional[str] = None) -> can.BusABC:
+             node: Optional[str] = None, secret: Optional[bytes] = None) -> can.BusABC:
         """Open the bus, retrying until ``timeout_s`` (a hub may still be starting).
         ``can_filters`` (python-can's acceptance filters) are applied where the frames are
         fanned out: in the kernel (socketcan) or in the hub (remote), so frames a node does not
         read never reach its process. ``node`` (a DBC node name): on a hub, authenticate as
         that node with the run's secret (``HIL_HUB_SECRET`` in the environment), so the hub
-        relays the node's own messages; without it a hub client is read-only."""
+        relays the node's own messages; without it a hub client is read-only. ``secret``: the
+        run's secret given directly (a tester's, from the run's hub.secret file)."""
         if self.interface in FORBIDDEN_INTERFACES:
             raise BusError(f"interface {self.interface!r} leaves the machine; not allowed")
         if self.interface == "remote":
@@ -151,7 +152,7 @@ class BusSpec:
                 extra = {}
                 if self.interface == "remote":
                     fast_remote_client()
-                    extra = credentials(node)
+                    extra = credentials(node, secret)
                 bus = can.Bus(interface=self.interface, channel=self.channel,
                               can_filters=can_filters, **extra)
                 if self.interface == "remote":

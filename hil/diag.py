@@ -14,10 +14,7 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import sys
 from collections import deque
 from typing import Callable, Optional
 
@@ -29,7 +26,6 @@ ISOTP_PARAMS = {
     "max_frame_size": 4095, "can_fd": False, "blocking_send": False, "wftmax": 0,
 }
 INBOX_FRAMES = 256          # frames of a request not yet processed (bounded)
-DIDS_PER_REQUEST = 8
 
 
 class UdsServer:
@@ -133,8 +129,9 @@ def read_dids(client) -> dict:
     from firmware.params import GRADE_NAMES, MODE_NAMES
 
     dids: dict = {}
-    for k in range(0, len(uds.DIDS), DIDS_PER_REQUEST):
-        resp = client.read_data_by_identifier(list(uds.DIDS[k:k + DIDS_PER_REQUEST]))
+    n = uds.MAX_DIDS_PER_REQUEST
+    for k in range(0, len(uds.DIDS), n):
+        resp = client.read_data_by_identifier(list(uds.DIDS[k:k + n]))
         dids.update(resp.service_data.values)
     u16 = lambda b: int.from_bytes(b, "big")   # noqa: E731
     grade = dids[uds.DID_GRADE][0]
@@ -241,9 +238,10 @@ def add_parser(sub) -> None:
 
 
 def open_tester_bus(interface, channel, secret_file):
-    from hil.auth import SECRET_ENV
     from hil.bus import BusError, resolve
     from hil.cli import fail
+    from hil.config import ConfigError
+    from hil.secoc import load_key
 
     try:
         spec, needs_hub = resolve(interface, channel)
@@ -252,26 +250,25 @@ def open_tester_bus(interface, channel, secret_file):
     if needs_hub:
         fail("no bench to talk to: give the hub with -i remote -c ws://127.0.0.1:PORT/ (hil "
              "run prints it), or run on vcan0")
+    secret = None
     if spec.interface == "remote":
         if not secret_file:
             fail("on a hub the tester needs --secret-file DIR/hub.secret (else it is read-only)")
         try:
-            text = open(secret_file).read().strip()
-            bytes.fromhex(text)
-        except (OSError, ValueError) as exc:
-            fail(f"--secret-file {secret_file}: {getattr(exc, 'strerror', None) or exc}")
-        os.environ[SECRET_ENV] = text
+            secret = load_key(secret_file)
+        except ConfigError as exc:
+            fail(f"--secret-file: {exc}")
     try:
-        return tester_bus(spec)
+        return tester_bus(spec, secret)
     except BusError as exc:
         fail(str(exc))
 
 
-def tester_bus(spec):
+def tester_bus(spec, secret: Optional[bytes] = None):
     """The tester's bus: DIAG_RESPONSE only, authenticated as TESTER (on a hub, with the
-    secret in the environment)."""
+    run's secret)."""
     return spec.open(can_filters=[{"can_id": RESPONSE_ID, "can_mask": 0x7FF,
-                                   "extended": False}], node="TESTER")
+                                   "extended": False}], node="TESTER", secret=secret)
 
 
 def client(bus, timeout: float):

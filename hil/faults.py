@@ -576,26 +576,16 @@ def _tester(windows: list[Window], spec, out: Path, reads: dict, stop) -> None:
     points = _read_points(windows)
     if not points:
         return
-    import os
-
     from hil import diag
-    from hil.auth import SECRET_ENV
     from hil.bus import close_bus
+    from hil.secoc import load_key
 
     ticks = bus = None
     try:
         ticks = spec.open(can_filters=[{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
                                        for n in ("PLANT_SENSORS", "SIM_TICK")])
-        before = os.environ.get(SECRET_ENV)
-        if spec.interface == "remote":     # (the secret only for this open)
-            os.environ[SECRET_ENV] = (out / "hub.secret").read_text().strip()
-        try:
-            bus = diag.tester_bus(spec)
-        finally:
-            if before is None:
-                os.environ.pop(SECRET_ENV, None)
-            else:
-                os.environ[SECRET_ENV] = before
+        bus = diag.tester_bus(spec, load_key(out / "hub.secret")
+                              if spec.interface == "remote" else None)
         with diag.client(bus, timeout=2.0) as client:
             k = -1
             while not stop.is_set() and points:

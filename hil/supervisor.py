@@ -377,7 +377,8 @@ def run(args, on_bus=None) -> int:
         if needs_hub:
             # the run's secret: to the hub and the nodes in their environment, never argv
             env[SECRET_ENV] = secrets.token_hex(16)
-            _write_secret(out / HUB_SECRET_FILE, env[SECRET_ENV])
+            # (for a tester, hil diag --secret-file: a key file, mode 0600, never argv)
+            secoc.write_key(out / HUB_SECRET_FILE, bytes.fromhex(env[SECRET_ENV]))
             hub = Hub(rt_priority=rt_of(rt, "hub"), secret=env[SECRET_ENV],
                       allow_external_tx=getattr(args, "allow_external_tx", False),
                       allow_unknown_ids=bool(getattr(args, "inject", None)),
@@ -438,14 +439,6 @@ def run(args, on_bus=None) -> int:
 
 
 HUB_SECRET_FILE = "hub.secret"
-
-
-def _write_secret(path: Path, secret: str) -> None:
-    """The run's hub secret for a tester (``hil diag --secret-file``): mode 0600, the run's
-    directory only, never argv. It makes its holder the DBC's TESTER: DIAG_REQUEST alone."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(secret + "\n")
 
 
 def _count_tester(args, logger) -> None:

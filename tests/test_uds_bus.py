@@ -181,6 +181,7 @@ def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
 def test_the_tester_without_a_bench_says_so_in_one_line(tmp_path):
     secret = tmp_path / "s"
     secret.write_text("00" * 16)
+    secret.chmod(0o600)                  # (a key file: hil.secoc.load_key refuses others)
     p = _diag("ws://127.0.0.1:9/", secret)
     assert p.returncode != 0 and len(p.stderr.strip().splitlines()) == 1
     assert "Traceback" not in p.stderr

@@ -112,8 +112,6 @@ DTCS = (
 )
 BY_CODE = {d.code: i for i, d in enumerate(DTCS)}
 BY_NAME = {d.name: i for i, d in enumerate(DTCS)}
-TEST_DTCS = tuple(i for i, d in enumerate(DTCS) if d.source == SRC_TEST)
-FAULT_DTCS = tuple(i for i, d in enumerate(DTCS) if d.source == SRC_FAULT)
 
 
 class Snapshot(NamedTuple):

@@ -49,10 +49,6 @@ T_NIS_BA, T_NIS_SWS, T_NIS_WA = 0, 1, 2
 T_FLAT_BA, T_FLAT_WA, T_FLAT_SWS, T_FLAT_CUR = 3, 4, 5, 6
 T_ACT_STUCK, T_ACT_OPEN = 7, 8
 N_TESTS = 9
-TEST_NAMES = ("nis_body_accel", "nis_susp_defl", "nis_wheel_accel", "flat_body_accel",
-              "flat_wheel_accel", "flat_susp_defl", "flat_motor_current", "actuator_stuck",
-              "actuator_open")
-FLAT_CHANNELS = ("body_accel", "wheel_accel", "susp_defl", "motor_current")
 FLAT_TESTS = (T_FLAT_BA, T_FLAT_WA, T_FLAT_SWS, T_FLAT_CUR)
 
 
@@ -70,7 +66,6 @@ class FdiState:
     regen_prev: bool = False
     failed: int = 0                # bit per test: failed this tick
     completed: int = 0             # bit per test: ran to a verdict this tick
-    first_failed: list = field(default_factory=lambda: [-1] * N_TESTS)  # tick, since start
 
 
 def step(P: EcuParams, st: FdiState, tick: int, eps, hph, rho: float, force_meas: float,
@@ -90,13 +85,8 @@ def step(P: EcuParams, st: FdiState, tick: int, eps, hph, rho: float, force_meas
     f2, c2 = _flatline(P, st, settled, counts)
     f3, c3 = _actuator(P, st, settled, counts[3] is not None, i_meas, v_rel, var_v_rel, a_rel,
                        bool(f2 & 1 << T_FLAT_CUR))
-    failed, st.completed = f1 | f2 | f3, c1 | c2 | c3
-    st.failed = failed
-    if failed:
-        for t in range(N_TESTS):
-            if failed >> t & 1 and st.first_failed[t] < 0:
-                st.first_failed[t] = tick
-    return failed
+    st.failed, st.completed = f1 | f2 | f3, c1 | c2 | c3
+    return st.failed
 
 
 def _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, dtd_est):

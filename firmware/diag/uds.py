@@ -52,7 +52,7 @@ def handle(ds: DiagState, params, tick: int, req: bytes) -> bytes | None:
     """One request -> its response. ``params``: the EcuParams (identification DIDs)."""
     if not req:
         return None
-    expire(ds, tick)
+    expire(ds, tick, params.dt_s)
     if ds.session != SESSION_DEFAULT:
         ds.session_tick = tick
     sid = req[0]
@@ -62,7 +62,7 @@ def handle(ds: DiagState, params, tick: int, req: bytes) -> bytes | None:
     return fn(ds, params, tick, req)
 
 
-def expire(ds: DiagState, tick: int, dt_s: float = 0.001) -> None:
+def expire(ds: DiagState, tick: int, dt_s: float) -> None:
     """S3: a non-default session ends after ``S3_MS`` without a request."""
     if ds.session != SESSION_DEFAULT and (tick - ds.session_tick) * dt_s * 1000 > S3_MS:
         ds.session = SESSION_DEFAULT
