@@ -82,10 +82,25 @@ static int32_t adc_signal(int k, int32_t counts)
     return add(FX_ADC_OFF_Q31[k], AM(FX_ADC_LSB, k, counts, 0, FX_ADC_FRAC[k]));
 }
 
+/* the bump stops' force on the body at the stroke defl (0 without bump stops) */
+static int32_t bump_force(int32_t defl)
+{
+    if (FX_BUMP_K_Q31 == 0) {
+        return 0;
+    }
+    if (defl > FX_BUMP_CLEAR_Q31) {
+        return neg(CM(FX_BUMP_K, sub(defl, FX_BUMP_CLEAR_Q31), FX_F_POS, FX_F_FORCE));
+    }
+    if (defl < -FX_BUMP_CLEAR_Q31) {
+        return neg(CM(FX_BUMP_K, add(defl, FX_BUMP_CLEAR_Q31), FX_F_POS, FX_F_FORCE));
+    }
+    return 0;
+}
+
 void fx_measure(fx_state_t *s, const int32_t counts[4])
 {
     int i, j;
-    int32_t rel_prev, u, z[3];
+    int32_t rel_prev, known, u, z[3];
     int32_t xp[5];
     s->ba = adc_signal(0, counts[0]);
     s->wa = adc_signal(1, counts[1]);
@@ -97,8 +112,9 @@ void fx_measure(fx_state_t *s, const int32_t counts[4])
     } else {
         s->force_meas = CM(FX_KF_OVER_ETA, s->cur, FX_F_CUR, FX_F_FORCE);
     }
-    u = sat32(rshift_round((int64_t)s->force_meas_prev + s->force_meas, 1));
-    s->force_meas_prev = s->force_meas;
+    known = add(s->force_meas, bump_force(s->defl));     /* the actuator's and the bump stops' */
+    u = sat32(rshift_round((int64_t)s->force_known_prev + known, 1));
+    s->force_known_prev = known;
     for (i = 0; i < 5; i++) {
         int64_t acc = AM(FX_GAMMA, i, u, FX_F_FORCE, FX_STATE_FRAC[i]);
         for (j = 0; j < 5; j++) {
@@ -113,7 +129,7 @@ void fx_measure(fx_state_t *s, const int32_t counts[4])
     z[1] = s->defl;
     z[2] = s->wa;
     for (i = 0; i < FX_N_MEAS; i++) {
-        int64_t acc = (int64_t)z[i] - AM(FX_D, i, s->force_meas, FX_F_FORCE, FX_MEAS_FRAC[i]);
+        int64_t acc = (int64_t)z[i] - AM(FX_D, i, known, FX_F_FORCE, FX_MEAS_FRAC[i]);
         for (j = 0; j < 5; j++) {
             acc -= AM(FX_H, 5 * i + j, xp[j], FX_STATE_FRAC[j], FX_MEAS_FRAC[i]);
         }

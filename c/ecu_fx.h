@@ -19,7 +19,7 @@ typedef struct {
     int32_t x[5];                 /* [zs', zt', zs, zt, zf] in FX_STATE_FRAC */
     int32_t resid[FX_N_MEAS];     /* z - H x_pred - D u, FX_MEAS_FRAC */
     int32_t ba, wa, defl, cur;    /* signals */
-    int32_t force_meas, force_meas_prev;
+    int32_t force_meas, force_known_prev;
     int ctrl, ctrl_from, ramp;
     fx_pid_t pid, bp_pid;
     int32_t w_h[20], b_h[5], w_o[15], b_o[3];

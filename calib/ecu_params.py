@@ -39,6 +39,9 @@ def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
     return expm(M * dt)[:n, n]
 
 
+AKF_LIFT_SIGMAS = 5.0       # airborne: the measured tyre force within 5 sigma of zero
+
+
 def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") -> fp.AkfParams:
     vp, ap = cfg.vehicle, cfg.actuator
     A4, b_force, b_road = mechanics(vp)
@@ -73,9 +76,29 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     # initial covariance: the stationary one of the passive car on the nominal road
     model = linear_model(vp, GRADE_GQ_M3[opts.akf_q_grade], NOMINAL_SPEED_MPS, convention)
     p0 = state_covariance(model.A, model.G)
+    # off the linear model (firmware.akf): the bump stops as a known force where the vehicle
+    # has them; an airborne tyre (where it can lift off) and a current beyond its sensor's
+    # range as unknown forces of the size of the static load and of that current's force
+    nl, ba_ch, wa_ch = cfg.nonlinear, cfg.sensors.body_accel, cfg.sensors.wheel_accel
+    gamma_wheel = np.ascontiguousarray(_zoh_input(A, np.array([0, 1 / vp.unsprung_mass_kg,
+                                                               0, 0, 0.0]), dt))
+    tyre_sigma = math.hypot(vp.sprung_mass_kg * math.hypot(ba_ch.noise_std, ba_ch.lsb / math.sqrt(12)),
+                            vp.unsprung_mass_kg * math.hypot(wa_ch.noise_std, wa_ch.lsb / math.sqrt(12)))
+    cur_range = max(abs(cur.range_min), abs(cur.range_max))
+    sws = cfg.sensors.susp_defl
     return fp.AkfParams(phi=phi, gamma=gamma, q_unit=q_unit, road_intensity_per_mps=road_int,
                         H=H, D=D, r0=r0, r_floor=quant, forgetting=opts.akf_forgetting,
-                        adaptive=opts.akf_adaptive, bias_adaptive=opts.akf_bias_adaptive, p0=p0)
+                        adaptive=opts.akf_adaptive, bias_adaptive=opts.akf_bias_adaptive, p0=p0,
+                        bump_clearance_m=nl.bump_stop_clearance_m if nl.bump_stops else 0.0,
+                        bump_stiffness=nl.bump_stop_stiffness_n_per_m if nl.bump_stops else 0.0,
+                        gamma_wheel=gamma_wheel, tyre_load_n=vp.static_tire_load_n,
+                        tyre_force_sigma_n=tyre_sigma, lift_sigmas=AKF_LIFT_SIGMAS,
+                        lift_force_sigma_n=vp.static_tire_load_n if nl.tire_lift_off else 0.0,
+                        current_force_sigma_n=(ap.force_constant_n_per_a * cur_range
+                                               / ap.screw_efficiency),
+                        stroke_force_sigma_n=(nl.bump_stop_stiffness_n_per_m * max(
+                            0.0, max(-sws.range_min, sws.range_max) - nl.bump_stop_clearance_m)
+                            if nl.bump_stops else 0.0))
 
 
 def grade_band_variance(speed: float, dt: float, hp_a: float, lp_a: float,
@@ -236,14 +259,19 @@ def inputs_digest(cfg: VehicleConfig, gains_file: Path | None, opts: DesignOptio
 SOFTWARE_VERSION = "suspension-0.1.0"
 FDI_FALSE_ALARM = 1e-9       # per test window (docs/diagnostics.md)
 FDI_NIS_WINDOW = 100         # ticks of the innovation tests' EWMA
-FDI_CUR_WINDOW = 20          # ticks of the actuator test's EWMA
+FDI_ACT_WINDOW = 5           # ticks of the actuator test's EWMA
+FDI_ACT_RETRY_S = 0.1        # a failed actuator test holds the bridge open this long, then retries
+FDI_ACT_SUSPECT = 0.05       # BA or WA repeating a count this unlikely: no actuator verdict
 FDI_HOLD_WINDOWS = 3         # innovation tests wait this many windows after the model held
 FDI_SETTLE_S = 1.0           # no verdict before the estimator has run this long
-FDI_OPEN_SIGMAS = 3.0
-# The actuator test's residual is unit-variance on healthy drives (measured: rms 0.97-1.10 on
-# D roads) but runs of it reach 6x its chi-square level there, whatever the window: its
-# verdicts stay off until that is understood (docs/diagnostics.md).
-FDI_ACTUATOR_VERDICTS = False
+FDI_OPEN_SIGMAS = 4.0       # open winding: |i| within 4 sigma of zero throughout
+FDI_ACTUATOR_VERDICTS = True
+# The supply's operating range as a fraction of the vehicle's nominal bus voltage: for 48 V,
+# ISO 21780's range of unlimited operation begins at 36 V and its limited range ends at 54 V.
+# Below, the actuator cannot be relied on for its force; above, the bridge must be protected:
+# either is a safety-relevant fault (the bridge opens).
+SUPPLY_LOW_RATIO = 0.75
+SUPPLY_HIGH_RATIO = 1.125
 # The WA innovation is dominated by the unmeasured road, whose roughness steps at a segment
 # boundary (B to D: 16x G_q) before the grade estimate follows: its test reports no verdict
 # (a WA fault reaches the BA and SWS innovations; a stuck WA its flatline test).
@@ -275,23 +303,40 @@ def flatline_ticks(noise_std: float, lsb: float, alpha: float = FDI_FALSE_ALARM)
 
 
 def fdi_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.FdiParams:
+    from firmware.safety import RX_CHECKS
+
     vp, ap, sp, nl = cfg.vehicle, cfg.actuator, cfg.sensors, cfg.nonlinear
     dt = opts.dt_s
     lam, level = _ewma_level(FDI_NIS_WINDOW, FDI_FALSE_ALARM)
-    cur_lam, cur_level = _ewma_level(FDI_CUR_WINDOW, FDI_FALSE_ALARM)
-    cur = sp.motor_current
+    act_lam, act_level = _ewma_level(FDI_ACT_WINDOW, FDI_FALSE_ALARM)
+    cur, sup = sp.motor_current, sp.supply_voltage
     eta = ap.screw_efficiency
+    a = math.exp(-ap.winding_resistance_ohm * dt / ap.winding_inductance_h)
+    cur_sigma = math.sqrt(cur.noise_std ** 2 + cur.lsb ** 2 / 12.0)
+    supply_period = next(c for c in RX_CHECKS if c.message == "PLANT_SUPPLY").ticks(dt)[0]
     return fp.FdiParams(
         nis_lambda=lam, nis_threshold=level,
         flat_ticks=tuple(flatline_ticks(c.noise_std, c.lsb) for c in (
             sp.body_accel, sp.wheel_accel, sp.susp_defl, sp.motor_current)),
         force_band=1.0 / eta - eta,
         valid_defl_m=nl.bump_stop_clearance_m - 5.0 * sp.susp_defl.noise_std,
-        valid_tyre_m=vp.static_tire_load_n / vp.tire_stiffness_n_per_m,
         hold_ticks=FDI_HOLD_WINDOWS * FDI_NIS_WINDOW,
-        cur_lambda=cur_lam, cur_threshold=cur_level,
-        cur_sigma_a=math.sqrt(cur.noise_std ** 2 + cur.lsb ** 2 / 12.0),
-        open_ratio=FDI_OPEN_SIGMAS, settle_ticks=int(round(FDI_SETTLE_S / dt)),
+        cur_sigma_a=cur_sigma,
+        # the residual i_k - a i_{k-1} - b (V - EMF), the EMF from the step before:
+        # n_k - (1 + a) n_{k-1} + a n_{k-2} in the current noise n
+        act_var=cur_sigma ** 2 * (1.0 + (1.0 + a) ** 2 + a * a),
+        act_lambda=act_lam, act_threshold=act_level,
+        act_confirm_ticks=supply_period + 1,
+        act_retry_ticks=int(round(FDI_ACT_RETRY_S / dt)),
+        act_flat_ticks=tuple(flatline_ticks(c.noise_std, c.lsb, FDI_ACT_SUSPECT) or 1 << 30
+                             for c in (sp.body_accel, sp.wheel_accel)),
+        open_ratio=FDI_OPEN_SIGMAS,
+        supply_offset_v=sup.range_min, supply_lsb_v=sup.lsb, supply_full_scale=2 ** sup.bits - 1,
+        supply_change_v=5.0 * math.sqrt(2.0) * math.hypot(sup.noise_std, sup.lsb / math.sqrt(12))
+        + sup.lsb,
+        supply_low_v=SUPPLY_LOW_RATIO * ap.bus_voltage_v,
+        supply_high_v=SUPPLY_HIGH_RATIO * ap.bus_voltage_v,
+        settle_ticks=int(round(FDI_SETTLE_S / dt)),
         clip=FDI_CLIP_SIGMAS ** 2, actuator_verdicts=FDI_ACTUATOR_VERDICTS,
         nis_verdicts=FDI_NIS_VERDICTS)
 

@@ -11,7 +11,7 @@ import numpy as np
 from firmware.actuator import CURRENT_MARGIN
 from firmware.control.bppid import FORCE_REF_N
 from firmware.fixedpoint import best_frac, to_fixed
-from firmware.fx.tables import (ADC_FRAC, F_ACC, F_CUR, F_FORCE, F_JERK, F_NN, F_TANH, F_VEL,
+from firmware.fx.tables import (ADC_FRAC, F_ACC, F_CUR, F_FORCE, F_JERK, F_NN, F_POS, F_TANH, F_VEL,
                                 F_VOLT, F_W, GAIN_HEADROOM_BITS, MEAS_FRAC, STATE_FRAC,
                                 TANH_N, TANH_STEP_BITS, Fx, FxTables)
 from firmware.params import EcuParams
@@ -88,6 +88,7 @@ def build_tables(p: EcuParams) -> FxTables:
         h=tuple(fx(a.H[i, j], STATE_FRAC[j], MEAS_FRAC[i]) for i in range(m) for j in range(5)),
         d=tuple(fx(a.D[i], F_FORCE, MEAS_FRAC[i]) for i in range(m)),
         k_frac=gain_formats(p), bias_adaptive=bool(a.bias_adaptive),
+        bump_clear=fx_at(a.bump_clearance_m, F_POS), bump_k=fx(a.bump_stiffness, F_POS, F_FORCE),
         kf_eta=fx(kf * eta, F_CUR, F_FORCE), kf_over_eta=fx(kf / eta, F_CUR, F_FORCE),
         inv_eta_kf=fx(1.0 / (eta * kf), F_FORCE, F_CUR), eta_over_kf=fx(eta / kf, F_FORCE, F_CUR),
         friction=fx(pl.friction, F_VEL, F_FORCE),

@@ -64,3 +64,13 @@ def sample(params: AdcParams, state: AdcState, counts: tuple) -> tuple[tuple, in
                 st.counts = c
         values.append(st.value)
     return tuple(values), faults
+
+
+def measured(state: AdcState, names) -> bool:
+    """Every channel in ``names`` gave a measurement this tick: a good sample that is not at
+    a rail (a clipped sample says only that the quantity is beyond the range)."""
+    for name in names:
+        c = state.channels[name]
+        if c.faulty or c.rail_count:
+            return False
+    return True

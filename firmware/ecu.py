@@ -31,6 +31,7 @@ class Inputs(NamedTuple):
     req_counter: int = 0
     link_faults: int = 0     # frame-validity fault bits (firmware.safety.FAULT_*) of the
     #                          receive path; a channel whose frame was invalid arrives as None
+    supply: int | None = None   # the supply voltage's ADC counts, on a tick a sample arrived
 
 
 class Outputs(NamedTuple):
@@ -101,11 +102,11 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
         path.reset_estimate(st)
     vs, vt, _, zt, zf = st.akf.x.tolist()   # (Python floats: faster arithmetic than numpy's)
     dtd_est = zt - zf
-    # 2b. model-based fault detection: innovation, flatline and actuator tests (uses 1, 2)
+    # 2b. model-based fault detection: innovation, flatline, actuator, supply tests (uses 1, 2)
     if not finite:
         st.diag.fdi.failed = st.diag.fdi.completed = 0
-    elif _fdi(st, inp, defl, dtd_est, i_meas, ba - wa, force_meas, vs - vt, faults):
-        faults |= safety.FAULT_PLAUSIBILITY
+    else:
+        faults |= _fdi(st, inp, defl, ba, wa, i_meas, force_meas, faults)
     # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
     g_est = grade.step(P.grade, st.grade, vt, dtd_est, ba, speed, P.dt_s)
     dtd_rms = modes.road_holding_rms(P.modes, st.modes, dtd_est)
@@ -121,31 +122,33 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     # 7. outputs, quantised as sent (uses 1-6)
     out = _outputs(st, duty, active, force, regen_on, mode, g_est, faults, zf, dtd_est, dtd_rms)
     # 8. diagnostics: the command for the actuator test, the DTC memory (uses 1-7)
-    _diagnostics(st.diag, inp, out, duty, mode, g_est, faults)
+    _diagnostics(P, st.diag, inp, out, duty, mode, g_est, faults)
     return st, out
 
 
-def _diagnostics(ds: diag.DiagState, inp: Inputs, out: Outputs, duty: int, mode: int,
-                 g_est: int, faults: int) -> None:
+def _diagnostics(P: EcuParams, ds: diag.DiagState, inp: Inputs, out: Outputs, duty: int,
+                 mode: int, g_est: int, faults: int) -> None:
     """Stage 8: the tick's command for the actuator test, the DTC memory's reports, and the
     values the DIDs and the next snapshot read."""
-    fdi.command(ds.fdi, duty, out.enable, out.regen)
+    fdi.command(P, ds.fdi, duty, out.enable, out.regen)
     dtc.update(ds.dtc, inp.tick, faults, ds.fdi.failed, ds.fdi.completed, ds.snap)
     ds.view = (mode, g_est, faults, 0xFFFF if inp.speed is None else inp.speed,
-               out.ba_rms_mmps2, out.dtd_rms_um, inp.tick)
+               out.ba_rms_mmps2, out.dtd_rms_um, inp.tick, diag.supply_mv(ds.fdi.supply_v))
 
 
-def _fdi(st: EcuState, inp: Inputs, defl: float, dtd_est: float, i_meas: float,
-         a_rel: float, force_meas: float, v_rel: float, faults: int) -> int:
-    """Stage 2b: the failed tests' bits (``firmware.diag.fdi``)."""
+def _fdi(st: EcuState, inp: Inputs, defl: float, ba: float, wa: float, i_meas: float,
+         force_meas: float, faults: int) -> int:
+    """Stage 2b: the fault-word bits of the failed tests (``firmware.diag.fdi``): a failed
+    supply test is the supply bit, any other the plausibility bit."""
     P, k = st.params, st.akf
     gq = st.grade.gq
     rho = gq / P.akf_q_gq_nominal if math.isfinite(gq) and gq > P.akf_q_gq_nominal else 1.0
-    Pm = k.P
-    var_v = Pm.item(0, 0) + Pm.item(1, 1) - 2.0 * Pm.item(0, 1)
-    return fdi.step(P, st.diag.fdi, inp.tick, k.innovation.tolist(), k.hph.tolist(), rho,
-                    force_meas, _good_counts(st), defl, dtd_est, i_meas, v_rel, var_v, a_rel,
-                    not faults & INPUT_FAULTS)
+    lifted = akf.airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa)
+    failed = fdi.step(P, st.diag.fdi, inp.tick, k.innovation.tolist(), k.hph.tolist(), rho,
+                      force_meas, _good_counts(st), defl, lifted, i_meas, ba - wa,
+                      not faults & INPUT_FAULTS, inp.supply)
+    return ((safety.FAULT_PLAUSIBILITY if failed & ~fdi.SUPPLY_TESTS else 0)
+            | (safety.FAULT_SUPPLY if failed & fdi.SUPPLY_TESTS else 0))
 
 
 # an ADC channel or a frame of the receive path was bad: the filter ran on held values

@@ -90,6 +90,21 @@ class AkfParams:
     adaptive: bool
     bias_adaptive: bool      # estimate r-hat (Eq. 15)
     p0: np.ndarray           # (5,5) initial covariance
+    # Where the linear model does not hold (docs/ecu.md, "The estimator off the linear
+    # model"): the bump stops are a known force from the measured stroke; an airborne tyre
+    # and a current beyond its sensor's range are unknown forces, added as process noise.
+    bump_clearance_m: float = 0.0    # stroke at which the bump stops act ...
+    bump_stiffness: float = 0.0      # ... and their stiffness (N/m; 0: no bump stops)
+    gamma_wheel: np.ndarray | None = None  # (5,) a force on the wheel alone (ZOH)
+    tyre_load_n: float = 0.0         # static tyre load
+    tyre_force_sigma_n: float = 0.0  # noise of the tyre force measured as load + ms BA + mt WA
+    lift_sigmas: float = 5.0         # airborne: the measured tyre force below this many sigma
+    lift_force_sigma_n: float = 0.0  # std of the unknown wheel force while airborne (0: the
+    #                                  vehicle's tyre cannot lift off)
+    current_force_sigma_n: float = 0.0  # std of the unknown actuator force while the current
+    #                                     sensor is at a rail or faulty
+    stroke_force_sigma_n: float = 0.0   # ... and of the bump stops' force while the stroke
+    #                                     sensor is (0: no bump stops)
 
 
 @dataclass(frozen=True)
@@ -183,13 +198,21 @@ class FdiParams:
     #                              0: no flatline test, the channel's noise is below one LSB)
     force_band: float            # (1/eta - eta): the force-from-current ambiguity, per N
     valid_defl_m: float          # linear model valid below this |SWS| (the bump-stop clearance)
-    valid_tyre_m: float          # ... and tyre deflection below the static one (no lift-off)
     hold_ticks: int              # after the model was invalid, the innovation tests wait this long
-    cur_lambda: float            # EWMA weight of the current-model residual test
-    cur_threshold: float         # its alarm level (chi2 quantile / window)
     cur_sigma_a: float           # current measurement noise (noise and quantisation), A
-    open_ratio: float            # open winding: |i| below this many sigma while the model
-    #                              expects more than 10x that
+    act_var: float               # the actuator residual's variance from the current noise, A^2
+    act_lambda: float            # EWMA weight of the actuator test ...
+    act_threshold: float         # ... and its alarm level (chi2 quantile / window)
+    act_confirm_ticks: int       # above the level this long (a supply sample in between)
+    act_retry_ticks: int         # a failed actuator test holds this long, then retries
+    act_flat_ticks: tuple[int, int]  # no actuator verdict while BA, WA repeat a count this often
+    open_ratio: float            # open winding: |i| below this many sigma throughout
+    supply_offset_v: float       # the supply voltage's ADC: volts at count 0 ...
+    supply_lsb_v: float          # ... per count ...
+    supply_full_scale: int       # ... and its full scale
+    supply_change_v: float       # a sample this far from the last: the supply changed
+    supply_low_v: float          # the operating range of the supply
+    supply_high_v: float
     settle_ticks: int            # no test verdict before this tick (estimator start-up)
     clip: float                  # a normalised square enters the EWMAs at most this large
     nis_verdicts: tuple[bool, ...]  # which innovation tests report (BA, SWS, WA)

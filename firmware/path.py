@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from firmware import actuator, akf, control, safety
+from firmware import actuator, adc, akf, control, safety
 from firmware.control import fx as fx_control
 from firmware.fixedpoint import to_fixed, to_float
 from firmware.fx import akf as fx_akf
@@ -24,6 +24,27 @@ from firmware.params import CTRL_NAMES, MODE_PASSIVE, EcuParams
 FX_CHANNELS = ("body_accel", "wheel_accel", "susp_defl", "motor_current")
 
 
+def off_model(st, ba: float, wa: float) -> tuple[bool, tuple]:
+    """The covariance side of a tick off the linear model (``firmware.akf``), the same in both
+    paths: the unknown forces as process noise (a tyre off the road, where the vehicle's can
+    lift off; a current or a stroke beyond its sensor's range). Returns whether R_hat may
+    adapt (every input a measurement, and the model holds: the innovations of an airborne
+    tyre's ticks say nothing about the sensors' noise), and the measurements not to use
+    (a faulty channel's held value)."""
+    P, m = st.params, st.adc
+    current_known = adc.measured(m, ("motor_current",))
+    stroke_known = adc.measured(m, ("susp_defl",))
+    lifted = akf.airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa) and P.akf.lift_force_sigma_n > 0
+    akf.unknown_forces(P.akf, st.akf, lifted, not current_known, not stroke_known)
+    held = tuple(j for j, name in enumerate(MEASURED) if m.channels[name].faulty)
+    adapt = (current_known and stroke_known and not lifted
+             and adc.measured(m, ("body_accel", "wheel_accel")))
+    return adapt, held
+
+
+MEASURED = ("body_accel", "susp_defl", "wheel_accel")    # the filter's z, in its order
+
+
 class FloatPath:
     name = "float"
     gain_saturations = 0
@@ -32,7 +53,7 @@ class FloatPath:
     def __init__(self, params: EcuParams):
         self.ctl = control.init(params.control, params.modes.controllers[params.modes.initial_mode])
         self.actuator = actuator.ActuatorState()
-        self.force_meas_prev = 0.0       # force from the measured current, last tick
+        self.force_known_prev = 0.0      # the known force (actuator, bump stops), last tick
 
     def estimate(self, st, ba: float, wa: float, defl: float, i_meas: float,
                  road_intensity: float) -> tuple[float, bool]:
@@ -42,10 +63,13 @@ class FloatPath:
         rel_prev = x_prev.item(0) - x_prev.item(1)
         g = plant.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / plant.efficiency
         force_meas = g * plant.force_constant * i_meas
+        # the known force: the actuator's and the bump stops'; the unknown ones as noise
+        known = force_meas + akf.bump_force(st.params.akf, defl)
+        adapt, held = off_model(st, ba, wa)
         # predict with the force that acted over the tick, correct with z = [BA, SWS(, WA)]
-        finite = akf.tick(st.params.akf, st.akf, 0.5 * (self.force_meas_prev + force_meas),
-                          road_intensity, ba, defl, wa, force_meas)
-        self.force_meas_prev = force_meas
+        finite = akf.tick(st.params.akf, st.akf, 0.5 * (self.force_known_prev + known),
+                          road_intensity, ba, defl, wa, known, adapt, held)
+        self.force_known_prev = known
         return force_meas, finite
 
     def reset_estimate(self, st) -> None:
@@ -93,11 +117,12 @@ class FixedPath:
         P, T, fs = st.params, self.tables, self.fx
         counts = tuple(st.adc.channels[n].counts for n in FX_CHANNELS)
         resid_q = fx_akf.measure(T, fs, counts)
+        adapt, held = off_model(st, ba, wa)
         akf.predict_cov(P.akf, st.akf, road_intensity)
         r_q = [to_fixed(float(v), MEAS_FRAC[j]) if math.isfinite(v) else 0
                for j, v in enumerate(st.akf.r)]
         resid = np.array([to_float(v, MEAS_FRAC[j]) for j, v in enumerate(resid_q)])
-        K, _ = akf.gain(P.akf, st.akf, resid)
+        K, _ = akf.gain(P.akf, st.akf, resid, adapt, held)
         k_q = fx_akf.quantize_gain(T, fs, K)
         fx_akf.correct(T, fs, k_q, r_q)
         st.akf.x = np.array([to_float(v, f) for v, f in zip(fs.x, STATE_FRAC)])

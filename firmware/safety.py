@@ -69,6 +69,8 @@ FAULT_COUNTER = 1 << 12
 FAULT_TIMEOUT = 1 << 13
 FAULT_UNKNOWN_ID = 1 << 14
 FAULT_RANGE = 1 << 15             # a signal outside its declared range
+FAULT_SUPPLY = 1 << 16            # the supply voltage outside its operating range (fail-safe;
+#                                   on the bus: ECU_STATUS.SUPPLY_FAULT)
 
 FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
                FAULT_AUTH: "auth", FAULT_PLAUSIBILITY: "plausibility", FAULT_RATE: "rate",
@@ -76,13 +78,14 @@ FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
                FAULT_INVALID_REQUEST: "invalid_request", FAULT_DLC: "dlc",
                FAULT_CHECKSUM: "checksum", FAULT_COUNTER: "counter",
                FAULT_TIMEOUT: "timeout", FAULT_UNKNOWN_ID: "unknown_id",
-               FAULT_RANGE: "range"}
+               FAULT_RANGE: "range", FAULT_SUPPLY: "supply"}
 
-# faults that make active control unsafe: every measured channel, a diverged estimator, and
-# a sensor or actuator the model-based tests found implausible
+# faults that make active control unsafe: every measured channel, a diverged estimator, a
+# sensor or actuator the model-based tests found implausible, a supply out of its range
 SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
                    | adc.FAULT_BIT["susp_defl"] | adc.FAULT_BIT["motor_current"]
-                   | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE | FAULT_PLAUSIBILITY)
+                   | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE | FAULT_PLAUSIBILITY
+                   | FAULT_SUPPLY)
 
 
 def fault_names(word: int) -> list[str]:
@@ -133,6 +136,7 @@ class RxCheck:
 RX_CHECKS = (
     RxCheck("PLANT_SENSORS", 1, 0, True, 0.0),
     RxCheck("VEHICLE_SPEED", 10, 3, True, 0.5),
+    RxCheck("PLANT_SUPPLY", 10, 3, True, 0.5),
     RxCheck("DRIVER_REQUEST", 100, 0, True, 0.0),
 )
 TX_MESSAGES = ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND",

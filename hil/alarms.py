@@ -60,8 +60,8 @@ def _vehicle(name: str):
 
 
 def run_case(case: Case) -> dict:
-    """One fault-free drive: its detections (rising edges of the plausibility bit), the ticks
-    it was set, and the DTCs that failed."""
+    """One fault-free drive: its detections (rising edges of the model-based tests' bits:
+    plausibility, supply), the ticks they were set, and the DTCs that failed."""
     import numpy as np
 
     from firmware import safety
@@ -86,7 +86,8 @@ def run_case(case: Case) -> dict:
         report, trace = sil.run(cfg, route, "auto", case.seed, duration_s=case.duration_s)
     finally:
         nodes.EcuNode.summary = make
-    bits = (np.asarray(trace.arrays["faults"]) & safety.FAULT_PLAUSIBILITY) != 0
+    model_based = safety.FAULT_PLAUSIBILITY | safety.FAULT_SUPPLY
+    bits = (np.asarray(trace.arrays["faults"]) & model_based) != 0
     edges = int(np.count_nonzero(bits[1:] & ~bits[:-1]) + int(bits[:1].sum()))
     mem = kept["mem"]
     failed = [i for i, e in enumerate(mem.entries) if e.status & dtc.TFSLC]
@@ -96,7 +97,7 @@ def run_case(case: Case) -> dict:
             "other_dtcs": sorted(dtc.DTCS[i].name for i in failed
                                  if dtc.DTCS[i].source != dtc.SRC_TEST),
             "other_faults": int(np.count_nonzero(np.asarray(trace.arrays["faults"])
-                                                 & ~safety.FAULT_PLAUSIBILITY)),
+                                                 & ~model_based)),
             "wall_s": time.perf_counter() - t0, "command": case.command()}
 
 

@@ -155,6 +155,9 @@ class SensorChannel:
 
 
 SENSOR_NAMES = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
+# every channel of [sensors]: the five above (sampled together, hil.sensors.SensorSuite) and
+# the supply voltage (sampled every 10 ms with its own noise stream)
+SENSOR_KEYS = (*SENSOR_NAMES, "supply_voltage")
 
 
 @dataclass(frozen=True)
@@ -164,6 +167,7 @@ class SensorParams:
     susp_defl: SensorChannel
     motor_current: SensorChannel
     speed: SensorChannel
+    supply_voltage: SensorChannel
 
 
 @dataclass(frozen=True)
@@ -203,10 +207,10 @@ def _parse(data: Mapping[str, Any], path: Path, base: VehicleConfig | None) -> V
     if not isinstance(sensors_table, Mapping):
         raise ConfigError(f"{path}: 'sensors' must be a table")
     for key in sensors_table:
-        if key not in SENSOR_NAMES:
-            raise ConfigError(f"{path}: unknown key 'sensors.{key}' (known: {', '.join(SENSOR_NAMES)})")
+        if key not in SENSOR_KEYS:
+            raise ConfigError(f"{path}: unknown key 'sensors.{key}' (known: {', '.join(SENSOR_KEYS)})")
     channels = {}
-    for name in SENSOR_NAMES:
+    for name in SENSOR_KEYS:
         channel = build_section(SensorChannel, sensors_table.get(name), path, f"sensors.{name}",
                                 getattr(base.sensors, name) if base else None,
                                 required=base is None)

@@ -101,7 +101,7 @@ def _codecs() -> dict:
 
     sizes = {uds.DID_SOFTWARE_VERSION: uds.SOFTWARE_VERSION_LEN, uds.DID_CALIBRATION_SHA256: 32,
              uds.DID_VEHICLE_SHA256: 32, uds.DID_ACTIVE_MODE: 1, uds.DID_GRADE: 1,
-             uds.DID_SUPPLY_VOLTAGE: 2, uds.DID_FAULT_WORD: 2, uds.DID_BA_RMS: 2,
+             uds.DID_SUPPLY_VOLTAGE: 2, uds.DID_FAULT_WORD: 4, uds.DID_BA_RMS: 2,
              uds.DID_DTD_RMS: 2, uds.DID_TICK: 4, uds.DID_SNAPSHOT: uds.SNAPSHOT_SIZE}
     return {did: Raw(n) for did, n in sizes.items()}
 

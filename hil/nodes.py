@@ -7,8 +7,8 @@ process (``hil sim``, :func:`run_in_process`) and as three processes on a CAN bu
 (``hil run``, ``hil.procs``), so the two harnesses compute the same thing by construction.
 
 Lockstep protocol (deterministic, as fast as the bus allows), per tick k:
-  1. the plant samples its sensors and sends, in this order, VEHICLE_SPEED and SIM_TRUTH
-     (every 10 ms), ENERGY_STATUS (every 100 ms), PLANT_SENSORS (every tick);
+  1. the plant samples its sensors and sends, in this order, VEHICLE_SPEED, PLANT_SUPPLY and
+     SIM_TRUTH (every 10 ms), ENERGY_STATUS (every 100 ms), PLANT_SENSORS (every tick);
   2. on PLANT_SENSORS the ECU steps once and sends ECU_STATUS and ECU_ESTIMATES (every 10 ms)
      and MODE_RECOMMEND (every 100 ms and on change);
   3. the app answers every MODE_RECOMMEND with exactly one DRIVER_REQUEST (a new request or
@@ -44,7 +44,7 @@ from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
 from hil.plant import OBS, QuarterCarPlant
 from hil.road import GRADES, Route, drive_timeline, generate_profile
-from hil.sensors import SensorSuite
+from hil.sensors import SensorSuite, SupplySensor
 
 Frame = tuple[int, bytes]
 
@@ -54,6 +54,7 @@ ID = {m.name: m.frame_id for m in _DB.db.messages}
 NAME_OF = {v: k for k, v in ID.items()}
 OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
 UNKNOWN_GRADE_ON_BUS = 7
+SUPPLY_FAULT_BIT = safety.FAULT_SUPPLY.bit_length() - 1   # ECU_STATUS carries it alone
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 
 # PlantNode.obs columns after plant.OBS: the duty applied, the passive fallback, and the
@@ -66,7 +67,7 @@ TRACE = ("ba", "sws", "dtd", "force", "p_ba", "p_sws", "p_dtd", "p_vrel", "store
 # so that every recorded trace hash (tests/golden, earlier reports) stays valid.
 HASHED = (
     ("tick", "q"), ("body_accel", "i"), ("wheel_accel", "i"), ("susp_defl", "i"),
-    ("motor_current", "i"), ("speed", "i"),                 # counts as received, -1 for none
+    ("motor_current", "i"), ("speed", "i"), ("supply", "i"),   # counts as received, -1: none
     ("req_kind", "i"), ("req_mode", "i"), ("req_counter", "i"), ("link_faults", "I"),
     ("duty_q15", "i"), ("regen", "B"), ("enable", "B"), ("recommended_mode", "B"),
     ("active_mode", "B"), ("grade", "B"), ("reason", "B"), ("faults", "I"), ("events", "B"),
@@ -146,6 +147,8 @@ class PlantNode:
         self.true_grade = np.array([true_grade_index(s.grade)
                                     for s in route.segments])[self.timeline.segment]
         self.sensors = SensorSuite(cfg.sensors, np.random.default_rng([seed, 0x5E45]))
+        self.supply = SupplySensor(cfg.sensors.supply_voltage,
+                                   np.random.default_rng([seed, 0x5E46]))
         self.active = QuarterCarPlant(cfg, actuator=True, ledger=True)
         self.twin = QuarterCarPlant(cfg, actuator=False)
         self.active.reset(self.zf[0])
@@ -160,6 +163,7 @@ class PlantNode:
         self.unpack_cmd = codec.unpacker("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE",
                                                           "SENSOR_SEQ"))
         self.p_speed = period_ticks(codec, "VEHICLE_SPEED", dt)
+        self.p_supply = period_ticks(codec, "PLANT_SUPPLY", dt)
         self.p_truth = period_ticks(codec, "SIM_TRUTH", dt)
         self.p_energy = period_ticks(codec, "ENERGY_STATUS", dt)
         self.cmd_rx = safety.RxState()
@@ -200,6 +204,9 @@ class PlantNode:
         out = []
         if k % self.p_speed == 0:
             out.append(self.tx.frame("VEHICLE_SPEED", {"SPEED": r.speed}))
+        if k % self.p_supply == 0:
+            out.append(self.tx.frame("PLANT_SUPPLY", {
+                "SUPPLY_VOLTAGE_RAW": self.supply.sample(a.bus_voltage_v)}))
         if k % self.p_truth == 0:
             out.append(self.tx.frame_phys("SIM_TRUTH", {
                 "TRUE_ROAD": self.zf[k], "TRUE_DTD": a.x[3] - a.zf, "TRUE_SWS": a.x[2] - a.x[3],
@@ -282,6 +289,8 @@ class PlantNode:
         if fallback:
             duty, regen, enable = 0, False, False
             self.fallback_ticks += 1
+        if self.inject is not None:     # (the fault campaign: the bridge, winding, supply)
+            duty, regen, enable = self.inject.hardware(self, duty, regen, enable)
         a.step(self.zf[k + 1], duty / 32768.0, regen, enable)
         r = self.arrays
         if k >= self.twin_until:            # the passive twin only sees the road: run ahead
@@ -353,6 +362,7 @@ class EcuNode:
         # receive supervision: the firmware's table (safety.RX_CHECKS) on the DBC's layout
         self.rx_specs = {ID[c.message]: rx_spec(codec, c, dt) for c in safety.RX_CHECKS}
         self.spec_speed = self.rx_specs[ID["VEHICLE_SPEED"]]
+        self.spec_supply = self.rx_specs[ID["PLANT_SUPPLY"]]
         self.rx = {fid: safety.RxState() for fid in self.rx_specs}
         # SecOC: the command signed, the driver's request verified (key None: unsecured)
         self.cmd_sec = secoc.sender(codec, key, "ACTUATOR_CMD")
@@ -367,6 +377,7 @@ class EcuNode:
         self.k = 0
         self.pending: deque = deque()       # sensor frames not yet processed
         self.speed_raw: Optional[int] = None
+        self.supply_new: Optional[int] = None   # a supply sample that arrived since the last tick
         self.req = (fp.REQ_NONE, 0, 0)
         self.awaiting = 0                   # MODE_RECOMMEND sent, answer not yet received
         self.held_cmd: Optional[Frame] = None   # lockstep: ACTUATOR_CMD waiting for it
@@ -416,6 +427,11 @@ class EcuNode:
                 self.speed_raw = int(d.signals["SPEED"])
             else:
                 self._note(d.faults, "VEHICLE_SPEED")
+        elif fid == ID["PLANT_SUPPLY"]:
+            if d.ok:
+                self.supply_new = int(d.signals["SUPPLY_VOLTAGE_RAW"])
+            else:
+                self._note(d.faults, "PLANT_SUPPLY")
         elif fid == ID["DRIVER_REQUEST"]:
             self.awaiting = max(0, self.awaiting - 1)
             if d.ok:
@@ -471,10 +487,13 @@ class EcuNode:
             speed = None
         elif not self.rx[ID["VEHICLE_SPEED"]].valid:
             speed = None
+        supply, self.supply_new = self.supply_new, None
+        if not safety.check_timeout(self.spec_supply, self.rx[ID["PLANT_SUPPLY"]], k):
+            self.link_faults |= safety.FAULT_TIMEOUT
         counts = s if s is not None else (None,) * 4
         kind, rmode, rid = self.req
         link_faults = self.link_faults
-        inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults)
+        inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults, supply)
         self.state, out = ecu.step(self.state, inp)
         self.k += 1
         self.link_faults = 0
@@ -489,7 +508,8 @@ class EcuNode:
         if k % self.p_status == 0:
             frames.append(self.tx.frame("ECU_STATUS", {
                 "ACTIVE_MODE": out.active_mode, "ESTIMATED_GRADE": grade, "REASON": out.reason,
-                "FAULTS": self.status_faults, "BA_RMS": out.ba_rms_mmps2,
+                "FAULTS": self.status_faults & 0xFFFF,
+                "SUPPLY_FAULT": self.status_faults >> SUPPLY_FAULT_BIT & 1, "BA_RMS": out.ba_rms_mmps2,
                 "DTD_RMS": (out.dtd_rms_um + 5) // 10}))
             self.status_faults = 0
             frames.append(self.tx.frame("ECU_ESTIMATES", {
@@ -510,7 +530,7 @@ class EcuNode:
         else:                 # realtime: the command is what the plant waits for; send it first
             self.awaiting = 0
             frames.insert(0, cmd)
-        self.unrecorded = (k, counts, speed, kind, rmode, rid, link_faults, out)
+        self.unrecorded = (k, counts, speed, supply, kind, rmode, rid, link_faults, out)
         if self.uds is not None and self.uds.busy:   # (a transfer's ISO-TP timers)
             frames += self._diag_out(self.uds.poll())
         return frames
@@ -521,12 +541,13 @@ class EcuNode:
         tick and ``summary``/``trace`` run it when they did not."""
         if self.unrecorded is None:
             return
-        k, counts, speed, kind, rmode, rid, link_faults, out = self.unrecorded
+        k, counts, speed, supply, kind, rmode, rid, link_faults, out = self.unrecorded
         self.unrecorded = None
         if None in counts:
             counts = tuple(-1 if c is None else c for c in counts)
         self.sha.update(_HASHED.pack(    # (in HASHED's order)
-            k, *counts, -1 if speed is None else speed, kind, rmode, rid, link_faults,
+            k, *counts, -1 if speed is None else speed, -1 if supply is None else supply,
+            kind, rmode, rid, link_faults,
             out.duty_q15, out.regen, out.enable, out.recommended_mode, out.active_mode,
             out.grade, out.reason, out.faults, out.events, out.override, 0, out.force_cmd_n,
             out.road_est_um, out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
@@ -647,7 +668,9 @@ class AppNode:
             self.t = (self.n_status - 1) * self.p_status
             if d.ok:
                 self.view.update(d.signals)
-                seen = (int(d.signals["FAULTS"]), int(d.signals["REASON"]))
+                seen = (int(d.signals["FAULTS"])
+                        | int(d.signals["SUPPLY_FAULT"]) << SUPPLY_FAULT_BIT,
+                        int(d.signals["REASON"]))
                 if seen != (self.faults_seen[-1][1:] if self.faults_seen else (0, 0)):
                     self.faults_seen.append((self.t, *seen))
                     if self.on_faults is not None:

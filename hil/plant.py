@@ -244,6 +244,15 @@ class QuarterCarPlant:
         return led
 
     @property
+    def bus_voltage_v(self) -> float:
+        """The H-bridge's DC supply now (the vehicle file's bus voltage unless a fault
+        campaign dropped it: ``set_bus_voltage``)."""
+        return float(self._v[0])
+
+    def set_bus_voltage(self, volts: float) -> None:
+        self._v[0] = volts
+
+    @property
     def stored_j(self) -> float:
         return float(self._acc[A_STORED])
 

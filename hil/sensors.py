@@ -74,3 +74,14 @@ class SensorSuite:
                                          float(susp_defl), float(motor_current), float(speed),
                                          z, self._std, self.noise_gain, self._min, self._lsb,
                                          self._full))
+
+
+class SupplySensor:
+    """The supply-voltage channel, sampled every 10 ms: Gaussian noise from its own seeded
+    stream (the other channels draw what they drew before it existed), then the ADC."""
+
+    def __init__(self, channel: SensorChannel, rng: np.random.Generator):
+        self.channel, self.rng = channel, rng
+
+    def sample(self, volts: float) -> int:
+        return to_counts(self.channel, volts + self.channel.noise_std * self.rng.standard_normal())

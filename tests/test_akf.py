@@ -107,3 +107,59 @@ def test_wheel_accelerometer_makes_tyre_deflection_observable():
         d, de = tr.arrays["dtd"][:-1][3000:], tr.arrays["dtd_est"][1:][3000:]
         errs[use] = float(np.sqrt(np.mean((de - d) ** 2)))
     assert errs[True] < 0.1 * errs[False], errs
+
+
+def _with_nonlinear(cfg):
+    import dataclasses
+
+    return dataclasses.replace(cfg, nonlinear=dataclasses.replace(
+        cfg.nonlinear, bump_stops=True, tire_lift_off=True), source="nonlinear")
+
+
+def test_off_the_linear_model_bump_stops_lift_off_and_unmeasured_inputs():
+    """docs/ecu.md, "The estimator off the linear model": the bump stops are a known force of
+    the measured stroke (the same in both arithmetic paths), an airborne tyre and an input
+    beyond its sensor add process noise along their force's input, and R-hat holds on such a
+    tick."""
+    from calib.fx_tables import build_tables
+    from firmware.fixedpoint import to_fixed
+    from firmware.fx import akf as fx_akf
+    from firmware.fx.tables import F_FORCE, F_POS
+
+    P = build(_with_nonlinear(CFG))
+    a, ms, mt = P.akf, P.plant.ms, P.plant.mt
+    c, k = a.bump_clearance_m, a.bump_stiffness
+    assert (c, k) == (CFG.nonlinear.bump_stop_clearance_m, CFG.nonlinear.bump_stop_stiffness_n_per_m)
+    assert akf.bump_force(a, 0.9 * c) == 0.0 and akf.bump_force(a, -0.9 * c) == 0.0
+    assert akf.bump_force(a, c + 0.01) == pytest.approx(-k * 0.01)      # pushes the body down
+    assert akf.bump_force(a, -c - 0.01) == pytest.approx(k * 0.01)
+    T = build_tables(P)
+    for d in (0.0, c + 0.003, -c - 0.017, 0.0999):
+        f = fx_akf.bump_force(T, to_fixed(d, F_POS)) * 2.0 ** -F_FORCE
+        assert f == pytest.approx(akf.bump_force(a, d), abs=0.01)
+    assert akf.bump_force(build(CFG).akf, 0.2) == 0.0            # no bump stops, no force
+    # the tyre force the accelerometers measure: the load standing, none in free fall
+    g = a.tyre_load_n / (ms + mt)
+    assert not akf.airborne(a, ms, mt, 0.0, 0.0) and akf.airborne(a, ms, mt, -g, -g)
+    assert akf.tyre_force(a, ms, mt, -g, -g) == pytest.approx(0.0, abs=1e-9)
+    # process noise along the unknown force's input: the wheel's, or the actuator's
+    st = akf.init(a)
+    p0 = st.P.copy()
+    akf.unknown_forces(a, st, True, False, False)
+    assert np.allclose(st.P - p0, a.lift_force_sigma_n ** 2 * np.outer(a.gamma_wheel, a.gamma_wheel))
+    st.P = p0.copy()
+    akf.unknown_forces(a, st, False, True, True)
+    assert np.allclose(st.P - p0, (a.current_force_sigma_n ** 2 + a.stroke_force_sigma_n ** 2)
+                       * np.outer(a.gamma, a.gamma))
+    lin = build(CFG).akf                                         # a tyre that cannot lift off
+    assert lin.lift_force_sigma_n == 0.0 and lin.stroke_force_sigma_n == 0.0
+    st = akf.init(lin)
+    p0 = st.P.copy()
+    akf.unknown_forces(lin, st, True, False, True)
+    assert np.array_equal(st.P, p0)
+    # R-hat holds on a tick whose inputs are not measurements, adapts otherwise
+    for adapt in (False, True):
+        st = akf.init(a)
+        r0 = st.R.copy()
+        akf.tick(a, st, 0.0, a.road_intensity_per_mps * 20.0, 5.0, 0.01, -40.0, 0.0, adapt)
+        assert np.array_equal(st.R, r0) != adapt

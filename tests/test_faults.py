@@ -62,9 +62,10 @@ def test_campaign_over_the_bus_meets_the_acceptance(campaign_dir):
             # fail-safe lasted at least the hysteresis: a run of good samples before recovery
             assert r["recovery_ticks"] >= RECOVER_TICKS - 1, r
         if spec.plausible:
-            # detected in time, its DTC confirmed and read back over UDS with its snapshot,
-            # and named where the fault claims isolation
-            assert r["reaction_ticks"] <= faults.MAX_PLAUSIBLE_TICKS, r
+            # detected in time (sensor faults 200 ms, actuator and supply 20 ms), its DTC
+            # confirmed and read back over UDS with its snapshot, and named where the fault
+            # claims isolation
+            assert r["reaction_ticks"] <= spec.limit <= faults.MAX_PLAUSIBLE_TICKS, r
             assert r["dtc"] and r["snapshot_ok"] and r["isolated"] is not False, r
             assert (r["isolated"] is None) == (spec.dtc == ""), r
         if not spec.safety:

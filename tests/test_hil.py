@@ -290,10 +290,13 @@ def test_realtime_pacing_runs_and_reports_its_deadlines(tmp_path):
     """Realtime pacing: the plant holds 1 kHz; how many deadlines were missed is reported
     (the figure itself is a benchmark, not a test)."""
     # (the limits are wide: this checks the mechanics on a test host running other tests
-    # in parallel; the timing figures are make bench's, the default limits a user's)
+    # in parallel; the timing figures are make bench's, the default limits a user's. A
+    # command late by 3 ticks makes the plant fall back to passive; the ECU's actuator test
+    # then sees the current stop and holds the bridge open for 0.1 s, so on a loaded host the
+    # fail-safe share follows the missed deadlines: both get the same wide limit)
     proc = hil_run(tmp_path, "--route", str(ROUTES / "refusal.toml"), "--mode", "comfort",
                    "--pace", "realtime", "--duration", "3", "--max-missed-ratio", "0.3",
-                   "--max-lost-ratio", "0.1")
+                   "--max-lost-ratio", "0.3")
     assert proc.returncode == 0, proc.stderr[-2000:]
     rep = json.loads(proc.stdout)
     assert rep["verdict"] == "pass"

@@ -87,6 +87,11 @@ DTCS = (
         "the motor current does not follow the commanded voltage"),
     Dtc(_c("C", 0x1010, 0x13), "actuator_open", SRC_TEST, fdi.T_ACT_OPEN, True,
         "no motor current where the commanded voltage drives one (open winding)"),
+    # the supply voltage: U3003 (battery voltage), FTB 0x16 below, 0x17 above the threshold
+    Dtc(_c("U", 0x3003, 0x16), "supply_voltage_low", SRC_TEST, fdi.T_SUPPLY_LOW, True,
+        "the supply voltage is below its operating range"),
+    Dtc(_c("U", 0x3003, 0x17), "supply_voltage_high", SRC_TEST, fdi.T_SUPPLY_HIGH, True,
+        "the supply voltage is above its operating range"),
     # the estimator: FTB 0x92 performance
     Dtc(_c("C", 0x1020, 0x92), "estimator_reset", SRC_FAULT, safety.FAULT_NONFINITE_ESTIMATE,
         True, "the state estimate diverged and was reset"),

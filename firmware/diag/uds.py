@@ -135,7 +135,7 @@ def _clear(ds, params, tick, req):
 
 
 def did_data(ds: DiagState, params, did: int) -> bytes | None:
-    mode, grade, faults, _, ba, dtd, t = ds.view
+    mode, grade, faults, _, ba, dtd, t, supply = ds.view
     if did == DID_SOFTWARE_VERSION:
         return params.software_version.encode("ascii")[:SOFTWARE_VERSION_LEN].ljust(
             SOFTWARE_VERSION_LEN, b"\x00")
@@ -148,9 +148,9 @@ def did_data(ds: DiagState, params, did: int) -> bytes | None:
     if did == DID_GRADE:
         return bytes((grade,))
     if did == DID_SUPPLY_VOLTAGE:
-        return (0xFFFF).to_bytes(2, "big")
+        return supply.to_bytes(2, "big")
     if did == DID_FAULT_WORD:
-        return (faults & 0xFFFF).to_bytes(2, "big")
+        return (faults & 0xFFFFFFFF).to_bytes(4, "big")
     if did == DID_BA_RMS:
         return min(ba, 0xFFFF).to_bytes(2, "big")
     if did == DID_DTD_RMS:

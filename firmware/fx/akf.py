@@ -10,9 +10,11 @@ import math
 
 import numpy as np
 
-from firmware.fixedpoint import INT32_MAX, INT32_MIN, add, mul, rshift_round, same_sign_or_zero, sat32, sub, to_fixed
+from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, mul, neg, rshift_round,
+                                 same_sign_or_zero, sat32, sub, to_fixed)
 from firmware.fx.state import FxState
-from firmware.fx.tables import (ADC_FRAC, F_CUR, F_FORCE, MEAS_FRAC, STATE_FRAC, FxTables, cm)
+from firmware.fx.tables import (ADC_FRAC, F_CUR, F_FORCE, F_POS, MEAS_FRAC, STATE_FRAC, FxTables,
+                                cm)
 
 
 def adc_signal(T: FxTables, k: int, counts: int | None) -> int:
@@ -31,8 +33,9 @@ def measure(T: FxTables, s: FxState, counts: tuple) -> list:
     rel_prev = sub(x[0], x[1])
     g = T.kf_eta if same_sign_or_zero(s.cur, rel_prev) else T.kf_over_eta
     s.force_meas = cm(g, s.cur, F_CUR, F_FORCE)
-    u = sat32(rshift_round(s.force_meas_prev + s.force_meas, 1))
-    s.force_meas_prev = s.force_meas
+    known = add(s.force_meas, bump_force(T, s.defl))      # the actuator's and the bump stops'
+    u = sat32(rshift_round(s.force_known_prev + known, 1))
+    s.force_known_prev = known
     phi, gamma = T.phi, T.gamma
     xp = []
     for i in range(5):
@@ -44,12 +47,24 @@ def measure(T: FxTables, s: FxState, counts: tuple) -> list:
     z = (s.ba, s.defl, s.wa)
     resid = []
     for i in range(T.n_meas):
-        acc = z[i] - cm(T.d[i], s.force_meas, F_FORCE, MEAS_FRAC[i])
+        acc = z[i] - cm(T.d[i], known, F_FORCE, MEAS_FRAC[i])
         for j in range(5):
             acc -= cm(T.h[5 * i + j], xp[j], STATE_FRAC[j], MEAS_FRAC[i])
         resid.append(sat32(acc))
     s.resid = resid
     return resid
+
+
+def bump_force(T: FxTables, defl: int) -> int:
+    """The bump stops' force on the body at the stroke ``defl`` (``firmware.akf.bump_force``;
+    C: ``bump_force``)."""
+    if T.bump_k.m == 0:
+        return 0
+    if defl > T.bump_clear.m:
+        return neg(cm(T.bump_k, sub(defl, T.bump_clear.m), F_POS, F_FORCE))
+    if defl < -T.bump_clear.m:
+        return neg(cm(T.bump_k, add(defl, T.bump_clear.m), F_POS, F_FORCE))
+    return 0
 
 
 def quantize_gain(T: FxTables, s: FxState, K: np.ndarray) -> list:

@@ -25,7 +25,7 @@ class FxState:
     defl: int = 0
     cur: int = 0
     force_meas: int = 0
-    force_meas_prev: int = 0
+    force_known_prev: int = 0     # the known force (actuator, bump stops) of the last tick
     # control
     ctrl: int = CTRL_NONE
     ctrl_from: int = CTRL_NONE

@@ -56,6 +56,8 @@ class FxTables:
     d: tuple                  # m x Fx (force -> measurement)
     k_frac: tuple             # m*5 fractional bits of the handed-over gain K (row-major 5 x m)
     bias_adaptive: bool
+    bump_clear: Fx            # F_POS: the bump stops' clearance
+    bump_k: Fx                # pos -> force: their stiffness (0: no bump stops)
     kf_eta: Fx                # current -> force, motoring
     kf_over_eta: Fx           # current -> force, back-driven
     inv_eta_kf: Fx            # force -> current
