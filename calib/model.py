@@ -85,6 +85,19 @@ def output_covariance(model: LinearModel, K: np.ndarray | None = None) -> tuple[
     return var, float(K @ P @ K)
 
 
+def passive_psd(model: LinearModel, f_hz: np.ndarray) -> np.ndarray:
+    """One-sided PSDs of [BA, SWS, DTD] of the passive car at frequencies ``f_hz``, in
+    (unit)^2/Hz: 2 |C (j 2 pi f - A)^-1 G|^2 for the model's unit white noise (its
+    integral over f is the variance ``output_covariance`` gives)."""
+    f = np.asarray(f_hz, dtype=float)
+    n = model.A.shape[0]
+    out = np.empty((model.C.shape[0], f.size))
+    for i, fi in enumerate(f):
+        h = model.C @ np.linalg.solve(2j * math.pi * fi * np.eye(n) - model.A, model.G)
+        out[:, i] = 2.0 * np.abs(h) ** 2
+    return out
+
+
 def passive_rms(model: LinearModel) -> np.ndarray:
     """Exact RMS of [BA (m/s^2), SWS (m), DTD (m)] of the passive car."""
     var, _ = output_covariance(model)

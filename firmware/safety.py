@@ -70,7 +70,7 @@ FAULT_TIMEOUT = 1 << 13
 FAULT_UNKNOWN_ID = 1 << 14
 FAULT_RANGE = 1 << 15             # a signal outside its declared range
 FAULT_SUPPLY = 1 << 16            # the supply voltage outside its operating range (fail-safe;
-#                                   on the bus: ECU_STATUS.SUPPLY_FAULT)
+#                                   on the bus: ECU_STATUS.FAULT_SUPPLY)
 
 FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
                FAULT_AUTH: "auth", FAULT_PLAUSIBILITY: "plausibility", FAULT_RATE: "rate",

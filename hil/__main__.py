@@ -16,7 +16,8 @@ from __future__ import annotations
 import argparse
 
 from hil import config, verdict
-from hil.cli import (add_design_argument, add_json_argument, add_vehicle_argument,
+from hil.cli import (add_design_argument, add_json_argument, add_log_arguments,
+                     add_vehicle_argument,
                      positive_float, route_or_exit, seed_arg, vehicle_or_exit)
 
 
@@ -75,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="stop after S simulated seconds (default: the whole route)")
     p.add_argument("--out", metavar="DIR", help="write DIR/report.json, report.md, figures "
                    "and DIR/bus.log (every frame, candump -L)")
+    add_log_arguments(p)
     _fixed_argument(p)
     _key_argument(p)
     add_vehicle_argument(p)
@@ -152,10 +154,20 @@ RUN_OUT_HELP = ("write bus.log, report.json, report.md, the figures, each node's
 CONTROLLER_CHOICES = tuple(config.CONTROLLERS)
 
 
-def _driver_arguments(p) -> None:
-    p.add_argument("--driver", choices=("auto", "fixed", "refuse", "script"),
+def _web_port_argument(p) -> None:
+    p.add_argument("--web-port", type=int, default=0, metavar="N",
+                   help="the driver page's port on 127.0.0.1 (default: a free one, printed)")
+
+
+def _driver_arguments(p, bench: bool = False) -> None:
+    extra = ("web", "interactive") if bench else ()
+    p.add_argument("--driver", choices=("auto", "fixed", "refuse", "script", *extra),
                    help="driver policy (default: auto for --mode auto, else fixed: choose the "
-                        "mode, refuse every recommendation)")
+                        "mode, refuse every recommendation)" + (
+                            "; web: the driver app as a page on 127.0.0.1 (its URL printed), "
+                            "a person accepts, refuses or chooses" if bench else ""))
+    if bench:
+        _web_port_argument(p)
     p.add_argument("--script", metavar="FILE", help="driver script TOML ([[request]] tables "
                    "with t_s, kind = accept|refuse|choose, mode)")
 
@@ -183,7 +195,8 @@ def _node_parsers(sub) -> None:
         _key_argument(p, node=out_help != RUN_OUT_HELP)
         add_vehicle_argument(p)
         if pace:
-            p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep")
+            p.add_argument("--pace", choices=("lockstep", "realtime"), default="lockstep",
+                           help="default lockstep (hil run --driver web: realtime)")
         p.add_argument("--rt-priority", type=int, default=0, metavar="N",
                        help="SCHED_FIFO priority N (0: normal scheduling, a node's default). "
                             "hil run: the base priority, 50 in realtime pacing and 0 in "
@@ -199,10 +212,11 @@ def _node_parsers(sub) -> None:
     add_design_argument(p)
     p.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop after S simulated seconds (default: the whole route)")
-    _driver_arguments(p)
+    _driver_arguments(p, bench=True)
     _fixed_argument(p)
+    add_log_arguments(p)
     common(p, out_help=RUN_OUT_HELP)
-    p.set_defaults(out="out/run", rt_priority=None)
+    p.set_defaults(out="out/run", rt_priority=None, pace=None)   # (pace: see supervisor.run)
     add_json_argument(p)
     verdict.add_arguments(p, realtime=True)
     p.add_argument("--allow-external-tx", action="store_true",
@@ -230,8 +244,13 @@ def _node_parsers(sub) -> None:
     common(p)
 
     p = sub.add_parser("app", help="the driver-app emulator node")
-    p.add_argument("--policy", choices=("auto", "fixed", "refuse", "script", "interactive"),
-                   help="default: auto for --mode auto, else fixed")
+    p.add_argument("--policy", choices=("auto", "fixed", "refuse", "script", "interactive",
+                                        "web"),
+                   help="default: auto for --mode auto, else fixed; interactive: keys in this "
+                        "terminal; web: a page on 127.0.0.1 (the port printed)")
+    p.add_argument("--web", action="store_const", const="web", dest="policy",
+                   help="the same as --policy web")
+    _web_port_argument(p)
     p.add_argument("--mode", default="auto", choices=MODE_CHOICES,
                    help="the mode a fixed driver chooses")
     p.add_argument("--script", metavar="FILE")
@@ -263,8 +282,9 @@ def _sim(args) -> int:
     from pathlib import Path
 
     from hil import sil
-    from hil.cli import design_or_exit, fail, key_or_exit, lock_out, progress_bar
-    from hil.buslog import BusLogFile
+    from hil.cli import (design_or_exit, fail, key_or_exit, lock_out, log_options_or_exit,
+                         progress_bar)
+    from hil.buslog import SIL_CHANNEL, BusLogFile, convert
     from hil.config import ConfigError, load_driver_script
     from hil.figures import write_outputs
     from hil.nodes import LockstepClock
@@ -276,12 +296,13 @@ def _sim(args) -> int:
     if args.driver == "script" and not args.script:
         fail("sim: --driver script needs --script FILE")
     log = clock = None
+    start_us, formats = log_options_or_exit(args)
     if args.out:
         lock_out(args.out)
     try:
         script = load_driver_script(args.script) if args.script else None
         if args.out:
-            log = BusLogFile(Path(args.out) / "bus.log")
+            log = BusLogFile(Path(args.out) / "bus.log", SIL_CHANNEL, start_us)
             clock = LockstepClock(cfg.sim.plant_dt_s)
         with progress_bar(f"SIL {route.name} ({args.mode})", not args.json) as progress:
             report, trace = sil.run(
@@ -297,8 +318,13 @@ def _sim(args) -> int:
         if log is not None:
             log.close()
     if args.out:
-        report["bench"] = {"harness": "sil", "frames_logged": log.count}
-        write_outputs(Path(args.out), report, trace)
+        try:
+            logs = [log.path, *convert(log.path, formats, start_us)]
+        except Exception as exc:  # noqa: BLE001 - a writer's own error, said in one line
+            fail(f"sim: the bus log could not be converted: {type(exc).__name__}: {exc}", 1)
+        report["bench"] = {"harness": "sil", "frames_logged": log.count,
+                           "logs": [p.name for p in logs]}
+        write_outputs(Path(args.out), report, trace, cfg, route)
     if args.junit:
         verdict.write_junit(args.junit, f"hil sim {route.name} {args.mode}",
                             [verdict.Check(**c) for c in report["checks"]])

@@ -33,6 +33,29 @@ def add_design_argument(parser: argparse.ArgumentParser) -> None:
                              "the documented defaults)")
 
 
+def add_log_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--start-time", metavar="TIME",
+                   help="the run's start: the bus log's first time stamp and the date of its "
+                        "ASC, BLF, TRC and MF4 copies (ISO 8601, e.g. 2026-12-02T09:00:00Z, "
+                        "or Unix seconds; default: now)")
+    p.add_argument("--log-format", action="append", metavar="FMT[,FMT]",
+                   help="also write the bus log as bus.asc, bus.blf, bus.trc or bus.mf4 (one "
+                        "of asc, blf, trc, mf4, log; repeat or separate by commas); bus.log "
+                        "(candump -L) is always written")
+
+
+def log_options_or_exit(args) -> tuple[int, tuple[str, ...]]:
+    """(start time in Unix microseconds, formats) of ``--start-time`` and ``--log-format``;
+    bad values exit 2 with one line."""
+    from hil.buslog import parse_formats, parse_start_time
+
+    try:
+        return (parse_start_time(getattr(args, "start_time", None)),
+                parse_formats(getattr(args, "log_format", None)))
+    except ValueError as exc:
+        fail(str(exc))
+
+
 def design_or_exit(path: str | None):
     """The design options of ``--design FILE`` (None without it); a bad file exits 2."""
     if path is None:
@@ -179,12 +202,39 @@ def emit(obj: dict, as_json: bool, render: Callable[[dict], None]) -> None:
         render(obj)
 
 
+PROGRESS_STEP_PCT = 5
+
+
+def progress_lines(label: str, detail: Optional[Callable[[], str]] = None
+                   ) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback that prints ``label: NN %`` (and ``detail()``)
+    on stderr each time another ``PROGRESS_STEP_PCT`` percent is done, and at 100 %."""
+    import time
+
+    last = [-1]
+    t0 = time.monotonic()
+
+    def progress(done: int, total: int) -> None:
+        pct = 100 * done // max(1, total)
+        step = pct - pct % PROGRESS_STEP_PCT
+        if step > last[0]:
+            last[0] = step
+            extra = f"  {detail()}" if detail is not None else ""
+            print(f"{label}: {step:3d} %  ({time.monotonic() - t0:.0f} s){extra}",
+                  file=sys.stderr, flush=True)
+    return progress
+
+
 @contextlib.contextmanager
 def progress_bar(label: str, enabled: bool) -> Iterator[Optional[Callable[[int, int], None]]]:
     """A transient rich progress bar on stderr for long work, as a ``progress(done, total)``
-    callback; ``None`` when disabled (JSON output, or stderr is not a terminal)."""
-    if not (enabled and sys.stderr.isatty()):
+    callback; without a terminal, a line every ``PROGRESS_STEP_PCT`` percent instead (a CI
+    log, ``make run | tee``); ``None`` when disabled (JSON output)."""
+    if not enabled:
         yield None
+        return
+    if not sys.stderr.isatty():
+        yield progress_lines(label)
         return
     from rich.progress import Progress
 

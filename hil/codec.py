@@ -25,6 +25,20 @@ from firmware.fixedpoint import round_half_away
 
 DBC_PATH = Path(__file__).resolve().parents[1] / "dbc" / "suspension.dbc"
 
+# The ECU's fault word on the bus: ECU_STATUS has one signal per bit of firmware.safety's word,
+# FAULT_<NAME> (named so that every decoder shows the fault by name, with a value table).
+FAULT_SIGNALS = {bit: "FAULT_" + name.upper() for bit, name in safety.FAULT_NAMES.items()}
+
+
+def fault_signals(word: int) -> dict[str, int]:
+    """ECU_STATUS's fault signals of a fault word."""
+    return {sig: 1 if word & bit else 0 for bit, sig in FAULT_SIGNALS.items()}
+
+
+def fault_word(signals: Mapping[str, float]) -> int:
+    """The fault word of decoded ECU_STATUS signals."""
+    return sum(bit for bit, sig in FAULT_SIGNALS.items() if signals.get(sig))
+
 
 def raw_range(sig) -> tuple[int, int]:
     if sig.is_signed:
@@ -36,10 +50,17 @@ def declared_raw_range(sig) -> tuple[int, int]:
     """The DBC's [minimum, maximum] of a signal as raw integers (the raw range when absent)."""
     lo, hi = raw_range(sig)
     if sig.minimum is not None:
-        lo = max(lo, math.ceil((sig.minimum - sig.offset) / sig.scale - 1e-9))
+        lo = max(lo, math.ceil(_snap((sig.minimum - sig.offset) / sig.scale)))
     if sig.maximum is not None:
-        hi = min(hi, math.floor((sig.maximum - sig.offset) / sig.scale + 1e-9))
+        hi = min(hi, math.floor(_snap((sig.maximum - sig.offset) / sig.scale)))
     return lo, hi
+
+
+def _snap(raw: float) -> float:
+    """A raw limit computed in floating point, on the integer it is within rounding of
+    (relative: 2147483.647 / 0.001 is 2147483646.9999998)."""
+    n = round(raw)
+    return float(n) if abs(raw - n) <= 1e-9 * max(1.0, abs(raw)) else raw
 
 
 def to_raw(sig, value: float) -> int:

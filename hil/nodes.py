@@ -39,7 +39,7 @@ from firmware.diag import uds
 from firmware import params as fp
 from firmware.path import FixedPath
 from hil import secoc
-from hil.codec import Codec
+from hil.codec import Codec, fault_signals, fault_word
 from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
 from hil.plant import OBS, QuarterCarPlant
@@ -54,7 +54,6 @@ ID = {m.name: m.frame_id for m in _DB.db.messages}
 NAME_OF = {v: k for k, v in ID.items()}
 OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
 UNKNOWN_GRADE_ON_BUS = 7
-SUPPLY_FAULT_BIT = safety.FAULT_SUPPLY.bit_length() - 1   # ECU_STATUS carries it alone
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 
 # PlantNode.obs columns after plant.OBS: the duty applied, the passive fallback, and the
@@ -508,8 +507,7 @@ class EcuNode:
         if k % self.p_status == 0:
             frames.append(self.tx.frame("ECU_STATUS", {
                 "ACTIVE_MODE": out.active_mode, "ESTIMATED_GRADE": grade, "REASON": out.reason,
-                "FAULTS": self.status_faults & 0xFFFF,
-                "SUPPLY_FAULT": self.status_faults >> SUPPLY_FAULT_BIT & 1, "BA_RMS": out.ba_rms_mmps2,
+                **fault_signals(self.status_faults), "BA_RMS": out.ba_rms_mmps2,
                 "DTD_RMS": (out.dtd_rms_um + 5) // 10}))
             self.status_faults = 0
             frames.append(self.tx.frame("ECU_ESTIMATES", {
@@ -582,7 +580,8 @@ def _div_half_away(a: int, b: int) -> int:
 
 REQ_KINDS = {"none": fp.REQ_NONE, "accept": fp.REQ_ACCEPT, "refuse": fp.REQ_REFUSE,
              "choose": fp.REQ_CHOOSE}
-POLICIES = ("auto", "fixed", "refuse", "script", "interactive")
+POLICIES = ("auto", "fixed", "refuse", "script", "interactive", "web")
+QUEUED = ("interactive", "web")       # the policies that send what a person chose
 
 
 class AppNode:
@@ -593,7 +592,8 @@ class AppNode:
     reaction delay; ``fixed`` chooses ``mode`` at start, then refuses every recommendation;
     ``refuse`` refuses every recommendation; ``script`` sends timed choices
     [(t_s, kind, mode or None), ...] (``accept`` with no mode accepts what is recommended then);
-    ``interactive`` sends what :meth:`push` queued (keys in a terminal)."""
+    ``interactive`` and ``web`` send what :meth:`push` queued (keys in a terminal, clicks
+    on the page of ``hil.webapp``)."""
 
     name = "APP"
 
@@ -607,8 +607,8 @@ class AppNode:
         self.script = deque(sorted(script or [], key=lambda e: e[0]))
         self.tx = Tx(codec)
         # the frames on_frame does nothing with (a bus harness may skip them)
-        self.ignore = frozenset(ID.values()) - {ID[n] for n in ("ECU_STATUS", "VEHICLE_SPEED",
-                                                                 "MODE_RECOMMEND")}
+        self.ignore = frozenset(ID.values()) - {ID[n] for n in (
+            "ECU_STATUS", "VEHICLE_SPEED", "MODE_RECOMMEND", "ENERGY_STATUS")}
         self.p_status = period_ticks(codec, "ECU_STATUS", dt)
         self.n_status = 0
         self.t = 0                           # ticks of simulated time (from ECU_STATUS)
@@ -622,6 +622,9 @@ class AppNode:
         # what the driver is told: (tick, FAULTS, REASON) of ECU_STATUS, on each change
         self.faults_seen: list[tuple[int, int, int]] = []
         self.on_faults: Optional[Callable[[float, int, int], None]] = None
+        # what the ECU recommends, told on each change: (t_s, recommended, active)
+        self.on_recommend: Optional[Callable[[float, int, int], None]] = None
+        self._told = None
         self.inject = inject                 # hil.faults.Injector (fault campaign) or None
         self.req_sec = secoc.sender(codec, key, "DRIVER_REQUEST")
 
@@ -647,7 +650,7 @@ class AppNode:
                 _, kind, mode = self.script.popleft()
                 self._send(REQ_KINDS[kind], rec if mode is None else mode)
             return
-        if self.policy == "interactive":
+        if self.policy in QUEUED:
             if self.queued:
                 kind, mode = self.queued.popleft()
                 self._send(REQ_KINDS[kind], rec if mode is None else mode)
@@ -668,14 +671,12 @@ class AppNode:
             self.t = (self.n_status - 1) * self.p_status
             if d.ok:
                 self.view.update(d.signals)
-                seen = (int(d.signals["FAULTS"])
-                        | int(d.signals["SUPPLY_FAULT"]) << SUPPLY_FAULT_BIT,
-                        int(d.signals["REASON"]))
+                seen = (fault_word(d.signals), int(d.signals["REASON"]))
                 if seen != (self.faults_seen[-1][1:] if self.faults_seen else (0, 0)):
                     self.faults_seen.append((self.t, *seen))
                     if self.on_faults is not None:
                         self.on_faults(self.t * self.dt, *seen)
-        elif fid == ID["VEHICLE_SPEED"]:
+        elif fid in (ID["VEHICLE_SPEED"], ID["ENERGY_STATUS"]):
             d = self.codec.decode(fid, data)
             if d.ok:
                 self.view.update(d.signals)
@@ -684,7 +685,11 @@ class AppNode:
             if d.ok:
                 s = d.signals
                 self.view.update({f"REC_{k}": v for k, v in s.items()})
-                self._decide(int(s["RECOMMENDED_MODE"]), int(s["ACTIVE_MODE"]))
+                rec = (int(s["RECOMMENDED_MODE"]), int(s["ACTIVE_MODE"]))
+                if rec != self._told and self.on_recommend is not None:
+                    self._told = rec
+                    self.on_recommend(self.t * self.dt, *rec)
+                self._decide(*rec)
                 if self.inject is not None:
                     self.inject.before_answer(self)
             fid, data = self.tx.frame("DRIVER_REQUEST", {

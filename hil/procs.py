@@ -56,7 +56,8 @@ class PartnerSilent(RuntimeError):
 
 DBC_NODE = {"plant": "PLANT", "ecu": "ECU", "app": "APP"}   # the DBC node each role is
 # what each node reads (acceptance filters); the ECU reads everything: it must see unknown IDs
-READS = {"plant": ("ACTUATOR_CMD",), "app": ("ECU_STATUS", "VEHICLE_SPEED", "MODE_RECOMMEND")}
+READS = {"plant": ("ACTUATOR_CMD",), "app": ("ECU_STATUS", "VEHICLE_SPEED", "MODE_RECOMMEND",
+                                             "ENERGY_STATUS")}
 
 
 def node_filters(name: str) -> Optional[list[dict]]:
@@ -98,6 +99,9 @@ def _ready() -> None:
     print("READY", flush=True)
 
 
+MISSED_AT = "_missed_at"     # run_plant's per-tick missed deadlines (realtime), not for JSON
+
+
 def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
     """Lockstep: step when the command (and the app's answer) is in. Realtime: hold 1 kHz
     against the monotonic clock: tick k's frames go out at its deadline; the plant steps as
@@ -132,6 +136,7 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
     t0 = time.monotonic() + 0.01
     k0 = node.k
     missed = 0
+    missed_at = np.zeros(node.n, dtype=bool)   # per tick (the report's event timeline)
     frames = None                       # the next tick's frames, built ahead of its deadline
     while not node.done and not stop.flag:
         k = node.k
@@ -172,6 +177,7 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
                 break
         if not stepped:                 # no answer in time: the latest valid command
             missed += 1
+            missed_at[k] = True
             node.step()
     lag = lags[:node.k - k0] * 1e6
     stats.update({
@@ -182,6 +188,7 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
         "lag_p99_us": float(np.percentile(lag, 99)) if len(lag) else 0.0,
         "lag_max_us": float(lag.max()) if len(lag) else 0.0,
         "overruns": int(np.count_nonzero(lag > dt * 1e6)),
+        MISSED_AT: missed_at[:node.k],
     })
     rtt = rtts[k0:node.k]
     rtt = rtt[np.isfinite(rtt)] * 1e6
@@ -268,6 +275,18 @@ def _injector(args, node: str):
     return Injector.from_file(plan, node, lockstep=args.pace == "lockstep")
 
 
+def _mode_name(mode: int) -> str:
+    from firmware.params import MODE_NAMES
+
+    return MODE_NAMES[mode] if 0 <= mode < len(MODE_NAMES) else f"mode {mode} (invalid)"
+
+
+def _tell_recommendation(app, t: float) -> None:
+    from hil.driver import describe, recommendation_line
+
+    print(recommendation_line(describe(dict(app.view), t)), file=sys.stderr, flush=True)
+
+
 def _tell_driver(t: float, faults: int, reason: int) -> None:
     from firmware.safety import fault_names
     from firmware.modes import REASON_FAULT
@@ -327,8 +346,10 @@ def main(role: str, args) -> int:
         node.inject = _injector(args, "app")
         if not getattr(args, "quiet", False):
             node.on_request = lambda t, kind, mode: print(
-                f"app: t={t:7.2f} s  {kind} {mode}", file=sys.stderr, flush=True)
+                f"app: t={t:7.2f} s  sent {kind} {_mode_name(mode)}", file=sys.stderr,
+                flush=True)
             node.on_faults = _tell_driver
+            node.on_recommend = lambda t, rec, active: _tell_recommendation(node, t)
     try:
         bus = open_node_bus(role, getattr(args, "interface", None),
                             getattr(args, "channel", None))
@@ -337,6 +358,20 @@ def main(role: str, args) -> int:
         return EXIT_BUS
     code = 0
     stats: dict = {}
+    web = None
+    if role == "app" and node.policy == "web":
+        from hil.webapp import WebApp
+
+        web = WebApp(node, port=getattr(args, "web_port", 0) or 0)
+        try:
+            url = web.start()
+        except OSError as exc:
+            print(f"app: {exc}", file=sys.stderr, flush=True)
+            close_bus(bus)
+            return 2
+        print(f"app: driver page at {url}", file=sys.stderr, flush=True)
+        if out is not None:
+            (out / "app.url").write_text(url + "\n")
     from hil.nodes import warm_up
 
     warm_up(node)
@@ -358,10 +393,16 @@ def main(role: str, args) -> int:
         code = EXIT_BUS
     finally:
         summary = node.summary()
+        missed_at = stats.pop(MISSED_AT, None)
         summary.update(stats)
         summary["sched"] = sched
         summary["stopped"] = stop.flag
         summary["exit_code"] = code
-        _write(out, role, summary, node.trace() if hasattr(node, "trace") else None)
+        trace = node.trace() if hasattr(node, "trace") else None
+        if trace is not None and missed_at is not None:
+            trace["missed"] = missed_at[:len(trace["ba"])]
+        _write(out, role, summary, trace)
         close_bus(bus)
+        if web is not None:
+            web.stop()
     return code

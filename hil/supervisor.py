@@ -27,13 +27,14 @@ from typing import Optional
 
 import numpy as np
 
+from firmware import safety
 from firmware.params import GRADE_NAMES, MODE_NAMES
 from hil import secoc, sil, verdict
 from hil.auth import SECRET_ENV
 from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, SocketcanTap, close_bus,
                      die_with_parent, resolve, rt_of, terminate)
-from hil.buslog import BusLogFile
-from hil.codec import Codec
+from hil.buslog import HUB_CHANNEL, LOG_FORMATS, BusLogFile, convert
+from hil.codec import Codec, fault_word
 from hil.nodes import ID, LockstepClock, message_name
 
 EXIT_NODE = 1
@@ -142,8 +143,10 @@ class Logger(threading.Thread):
     """Writes every frame on the bus to the candump log; keeps the latest status for the
     live view."""
 
-    def __init__(self, bus, log: BusLogFile, lockstep: bool, dt_s: float, codec: Codec):
+    def __init__(self, bus, log: BusLogFile, lockstep: bool, dt_s: float, codec: Codec,
+                 t0: float):
         super().__init__(daemon=True)
+        self.t0 = t0               # the run's start, monotonic (realtime stamps count from it)
         self.bus, self.log, self.codec = bus, log, codec
         self.clock = LockstepClock(dt_s) if lockstep else None
         self.ticks = 0
@@ -172,8 +175,8 @@ class Logger(threading.Thread):
                 self.last_seen[fid] = self.last_any = now
                 self.last_fid = fid
                 # realtime: the receive time here (candump semantics; senders' own stamps
-                # interleave out of order when two nodes send independently)
-                ts = self.clock.stamp(fid) if self.clock else time.time()
+                # interleave out of order when two nodes send independently), monotonic
+                ts = self.clock.stamp(fid) if self.clock else now - self.t0
                 self.log.write(fid, data, ts)
                 if fid == ID["PLANT_SENSORS"]:
                     self.ticks += 1
@@ -238,16 +241,12 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
     from rich.table import Table
 
     v = logger.view
-    modes = MODE_NAMES
-    grades = GRADE_NAMES
 
     def mode_name(key):
-        x = v.get(key)
-        return modes[int(x)] if x is not None and 0 <= int(x) < len(modes) else "-"
+        return _name(MODE_NAMES, v.get(key), "-")
 
     def grade_name(key):
-        x = v.get(key)
-        return grades[int(x)] if x is not None and 0 <= int(x) < 4 else "?"
+        return _name(GRADE_NAMES, v.get(key), "?")
 
     t = Table(title=f"hil run: {route.name}, mode {mode}, {pace}", show_header=False)
     k = logger.ticks
@@ -265,7 +264,8 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
                                   f"{1e3 * v.get('ECU_STATUS.DTD_RMS', 0.0):.2f} mm")
     t.add_row("energy stored / drawn", f"{v.get('ENERGY_STATUS.STORED_ENERGY', 0.0):8.1f} J / "
                                        f"{v.get('ENERGY_STATUS.SUPPLY_ENERGY', 0.0):8.1f} J")
-    t.add_row("fault bits", f"0x{int(v.get('ECU_STATUS.FAULTS', 0)):04X}")
+    word = fault_word({k.split(".", 1)[1]: x for k, x in v.items() if k.startswith("ECU_STATUS.")})
+    t.add_row("faults", ", ".join(safety.fault_names(word)) or "none")
     t.add_row("frames logged", f"{logger.log.count}")
     return t
 
@@ -310,6 +310,10 @@ def _check_inputs(args):
         fail(str(exc))
     if args.driver == "script" and not args.script:
         fail("run: --driver script needs --script FILE")
+    if args.driver == "interactive":
+        fail("run: --driver interactive needs the app's own terminal, which the bench's nodes "
+             "do not have: use --driver web (a page on 127.0.0.1), or start python -m hil app "
+             "--policy interactive beside the nodes")
     return cfg, route
 
 
@@ -329,6 +333,8 @@ def _node_argvs(args, spec: BusSpec, out: Path, rt: int, key_file: Path
     app = [*common, "--mode", args.mode, "--quiet", "--rt-priority", str(rt_of(rt, "app"))]
     if args.driver:
         app += ["--policy", args.driver]
+    if args.driver == "web":
+        app += ["--web-port", str(getattr(args, "web_port", 0) or 0)]
     if args.script:
         app += ["--script", args.script]
     plant = [*common, "--route", args.route, "--seed", str(args.seed),
@@ -344,14 +350,19 @@ def _node_argvs(args, spec: BusSpec, out: Path, rt: int, key_file: Path
 def run(args, on_bus=None) -> int:
     """``on_bus(spec)``: called once the bus is up, before the nodes start (the fault
     campaign attaches its outside client there)."""
-    from hil.cli import lock_out
+    from hil.cli import lock_out, log_options_or_exit
 
     cfg, route = _check_inputs(args)
+    if getattr(args, "pace", None) is None:    # a person at the page drives at the car's pace
+        args.pace = "realtime" if args.driver == "web" else "lockstep"
+    start_us, formats = log_options_or_exit(args)
+    t0 = time.monotonic()                # (the moment of start_us, on the monotonic clock)
     out = lock_out(args.out)
     from hil.figures import FIGURES
 
     stale = [f"{n}{x}" for n in NODES for x in (".json", ".npz", ".log")]
-    for name in (*stale, "hub.log", "report.json", "report.md", secoc.KEY_FILE_NAME,
+    copies = [f"bus.{x}" for x in LOG_FORMATS if x != "log"]
+    for name in (*stale, *copies, "app.url", "hub.log", "report.json", "report.md", secoc.KEY_FILE_NAME,
                  HUB_SECRET_FILE, *FIGURES):
         (out / name).unlink(missing_ok=True)   # a failed run leaves no old report behind
     key_file = _key_file(args, out)
@@ -388,8 +399,9 @@ def run(args, on_bus=None) -> int:
         say(f"bus: {spec.interface} {spec.channel}  (watch: python -m can.viewer -i "
             f"{spec.interface} -c {spec.channel})")
         log_bus = SocketcanTap(spec.channel) if spec.interface == "socketcan" else spec.open()
-        logger = Logger(log_bus, BusLogFile(out / "bus.log"), args.pace == "lockstep", dt,
-                        Codec())
+        channel = spec.channel if spec.interface == "socketcan" else HUB_CHANNEL
+        logger = Logger(log_bus, BusLogFile(out / "bus.log", channel, start_us),
+                        args.pace == "lockstep", dt, Codec(), t0)
         logger.start()
         if on_bus is not None:
             on_bus(spec)
@@ -398,6 +410,9 @@ def run(args, on_bus=None) -> int:
             nodes[name] = Node(name, argvs[name], out, env)
         for name in ("ecu", "app"):
             nodes[name].wait_ready()
+        if args.driver == "web":
+            say(f"driver page: {(out / 'app.url').read_text().strip()}  (the driver app: "
+                "accept, refuse or choose a mode there)")
         nodes["plant"] = Node("plant", argvs["plant"], out, env)
         nodes["plant"].wait_ready()
         _watch(nodes, hub, logger, n, dt, route, args)
@@ -431,11 +446,14 @@ def run(args, on_bus=None) -> int:
         _shut_down(nodes, logger, log_bus, hub)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    logs = _copies(logger, formats, start_us, say)
+    if logs is None and not code:
+        code, reason = EXIT_NODE, "the bus log could not be converted"
     if code:
         _partial_report(out, cfg, route, args, n, dt, logger, reason)
         return code
     return _report(out, cfg, route, args, n, dt, summaries, logger, time.monotonic() - t_start,
-                   spec)
+                   spec, logs)
 
 
 HUB_SECRET_FILE = "hub.secret"
@@ -481,14 +499,28 @@ def _shut_down(nodes: dict, logger: Optional[Logger], log_bus, hub: Optional[Hub
         hub.stop()
 
 
+def _copies(logger: Optional[Logger], formats: tuple, start_us: int, say
+            ) -> Optional[list[str]]:
+    """The bus log in the other formats asked for (``--log-format``), also after a failed
+    run: the names of the logs written, None when a conversion failed (said on stderr)."""
+    if logger is None:
+        return []
+    try:
+        return [logger.log.path.name] + [
+            p.name for p in convert(logger.log.path, formats, start_us)]
+    except Exception as exc:  # noqa: BLE001 - a writer's own error, said in one line
+        say(f"run failed: the bus log could not be converted: {type(exc).__name__}: {exc}")
+        return None
+
+
 def _report(out: Path, cfg, route, args, n: int, dt: float, summaries: dict, logger: Logger,
-            wall: float, spec: BusSpec) -> int:
+            wall: float, spec: BusSpec, logs: list[str]) -> int:
     from hil.figures import write_outputs
     from hil.report import finish, render_sil
 
     report, trace = _build(out, cfg, route, args, dt, summaries)
     report["bench"] = {"harness": "hil", "pace": args.pace, "bus": spec.interface,
-                       "frames_logged": logger.log.count, "wall_s": wall,
+                       "frames_logged": logger.log.count, "logs": logs, "wall_s": wall,
                        "rtf": trace.segment.size * dt / wall}
     if logger.kernel_drops is not None:         # socketcan: the logger's own socket
         report["bench"].update(logger_kernel_drops=logger.kernel_drops,
@@ -501,7 +533,7 @@ def _report(out: Path, cfg, route, args, n: int, dt: float, summaries: dict, log
             if k in summaries["plant"]}
     verdict.attach(report, run_checks(report, summaries, logger.log.by_id, n, dt, args,
                                       sil.fault_ticks(trace)))
-    write_outputs(out, report, trace)
+    write_outputs(out, report, trace, cfg, route)
     if getattr(args, "junit", None):
         verdict.write_junit(args.junit, _suite(route, args),
                             [verdict.Check(**c) for c in report["checks"]], wall)
@@ -592,6 +624,21 @@ def _stopped(pid: int) -> bool:
     return _proc_stat(pid)[:1] in (["T"], ["t"])
 
 
+def _line(logger: Logger, dt: float) -> str:
+    """The progress line's detail without a terminal: time, grade, modes, faults."""
+    v = logger.view
+    word = fault_word({k.split(".", 1)[1]: x for k, x in v.items() if k.startswith("ECU_STATUS.")})
+    grade = v.get("ECU_STATUS.ESTIMATED_GRADE")
+    rec, act = v.get("MODE_RECOMMEND.RECOMMENDED_MODE"), v.get("ECU_STATUS.ACTIVE_MODE")
+    return (f"t = {logger.ticks * dt:.1f} s, grade {_name(GRADE_NAMES, grade, '?')}, "
+            f"recommended {_name(MODE_NAMES, rec, '-')}, active {_name(MODE_NAMES, act, '-')}"
+            + (f", faults {', '.join(safety.fault_names(word))}" if word else ""))
+
+
+def _name(names, value, unknown: str) -> str:
+    return names[int(value)] if value is not None and 0 <= int(value) < len(names) else unknown
+
+
 def _watch(nodes: dict, hub: Optional[Hub], logger: Logger, n: int, dt: float, route,
            args) -> None:
     """Until the plant is done: a live view; stop at the first node that dies, and at the
@@ -606,7 +653,11 @@ def _watch(nodes: dict, hub: Optional[Hub], logger: Logger, n: int, dt: float, r
         live = Live(_view(logger, n, dt, route, args.mode, args.pace),
                     console=Console(stderr=True), refresh_per_second=4, transient=False)
         live.start()
-    last_print = -1
+    lines = None
+    if live is None and not args.json:
+        from hil.cli import progress_lines
+
+        lines = progress_lines(f"run {route.name}", lambda: _line(logger, dt))
     logger.since = time.monotonic()
     try:
         while True:
@@ -639,12 +690,8 @@ def _watch(nodes: dict, hub: Optional[Hub], logger: Logger, n: int, dt: float, r
                                   f"{logger.ticks * dt:.2f} s")
             if live is not None:
                 live.update(_view(logger, n, dt, route, args.mode, args.pace))
-            elif not args.json:
-                pct = int(10 * logger.ticks / max(1, n))
-                if pct != last_print:
-                    last_print = pct
-                    print(f"  {10 * pct:3d} %  t = {logger.ticks * dt:7.2f} s",
-                          file=sys.stderr, flush=True)
+            elif lines is not None:
+                lines(logger.ticks, n)
             time.sleep(0.1)
     finally:
         if live is not None:

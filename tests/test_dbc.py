@@ -240,3 +240,82 @@ def test_the_firmwares_receive_and_transmit_tables_match_the_dbc():
     assert node.listen - {ID["SIM_TICK"], ID["DIAG_REQUEST"]} == {
         ID[c.message] for c in safety.RX_CHECKS}
     assert node.spec_speed.timeout_ticks == 30 and node.spec_speed.min_interval_ticks == 5
+
+
+ENUMERATED = {"ACTUATOR_CMD": ("REGEN", "ENABLE"),
+              "ECU_STATUS": ("ACTIVE_MODE", "ESTIMATED_GRADE", "REASON"),
+              "MODE_RECOMMEND": ("RECOMMENDED_MODE", "ESTIMATED_GRADE", "ACTIVE_MODE", "REASON",
+                                 "OVERRIDE"),
+              "DRIVER_REQUEST": ("REQ_KIND", "REQ_MODE"), "SIM_TRUTH": ("TRUE_GRADE",)}
+
+
+def test_every_message_and_signal_is_commented_and_enumerations_have_value_tables():
+    from firmware.params import GRADE_NAMES, MODE_NAMES
+
+    for m in CODEC.db.messages:
+        assert m.comment, m.name
+        for s in m.signals:
+            assert s.comment, (m.name, s.name)
+        for name in ENUMERATED.get(m.name, ()):
+            assert m.get_signal_by_name(name).choices, (m.name, name)
+    mode = CODEC.message("ECU_STATUS").get_signal_by_name("ACTIVE_MODE").choices
+    assert [str(mode[i]) for i in range(len(MODE_NAMES))] == list(MODE_NAMES)
+    grade = CODEC.message("MODE_RECOMMEND").get_signal_by_name("ESTIMATED_GRADE").choices
+    assert [str(grade[i]) for i in range(4)] == list(GRADE_NAMES) and str(grade[7]) == "unknown"
+
+
+def test_the_fault_word_is_one_named_signal_per_bit_where_it_always_was():
+    """ECU_STATUS: bits 0-15 of the fault word in payload bits 8-23, bit 16 in bit 48, each
+    its own FAULT_<name> signal with a value table (the bytes of the 16-bit FAULTS word and
+    SUPPLY_FAULT it replaced)."""
+    from hil.codec import FAULT_SIGNALS, fault_signals, fault_word
+
+    status = CODEC.message("ECU_STATUS")
+    assert set(FAULT_SIGNALS.values()) == {s.name for s in status.signals
+                                           if s.name.startswith("FAULT_")}
+    for bit, name in FAULT_SIGNALS.items():
+        i = bit.bit_length() - 1
+        sig = status.get_signal_by_name(name)
+        assert (sig.start, sig.length) == ((8 + i if i < 16 else 48), 1), name
+        assert {int(k): str(v) for k, v in sig.choices.items()} == {0: "ok", 1: "fault"}
+        data = CODEC.encode("ECU_STATUS", fault_signals(bit))
+        word = int.from_bytes(data, "little") & ~(0xFF << 56) & ~(0xF << 52)
+        assert word == 1 << (8 + i if i < 16 else 48), name
+        assert fault_word(CODEC.decode(status.frame_id, data).signals) == bit
+    every = sum(FAULT_SIGNALS)
+    assert fault_word(fault_signals(every)) == every
+
+
+@pytest.mark.parametrize("fmt", ["arxml", "kcd", "sym"])
+def test_canmatrix_exports_load_back_with_every_signal_as_in_the_dbc(tmp_path, fmt):
+    from tools.dbc_export import check, export
+
+    path = export(tmp_path, [fmt])[fmt]
+    assert check(fmt, path) == []
+
+
+def test_a_damaged_export_is_reported(tmp_path):
+    """What the export mends, undone, is found: canmatrix's six-digit KCD slope; an ARXML
+    that does not load; a missing file. And the command exits 1 on such a problem."""
+    from tools.dbc_export import check, export
+
+    paths = export(tmp_path, ["kcd", "arxml"])
+    kcd = paths["kcd"].read_text()
+    paths["kcd"].write_text(kcd.replace('slope="3.0517578125e-05"', 'slope="3.05176e-05"'))
+    assert any("ACTUATOR_CMD.DUTY: scale" in p for p in check("kcd", paths["kcd"]))
+    paths["arxml"].write_text(paths["arxml"].read_text()[:5000])
+    assert "does not load" in check("arxml", paths["arxml"])[0]
+    assert "not written" in check("sym", tmp_path / "none.sym")[0]
+
+
+def test_dbc_export_command(tmp_path):
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "tools.dbc_export", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("checked: every message and signal as in the DBC") == 3
+    bad = subprocess.run([sys.executable, "-m", "tools.dbc_export", "--formats", "dbf"],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1

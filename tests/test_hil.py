@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from firmware import params as fp
-from hil.buslog import read_log
+from hil.buslog import SIL_CHANNEL, read_log, same_channel
 from hil.nodes import ID
 from tests import golden
 from tests.procutil import children as _children
@@ -38,20 +38,25 @@ def test_full_road_section_lockstep_equals_sil(tmp_path):
     """The acceptance run: full_road_section, auto, seed 1, lockstep over the hub."""
     proc = hil_run(tmp_path / "hil", "--route", "full_road_section", "--mode", "auto",
                    "--seed", "1", "--pace", "lockstep", "--key-file",
-                   str(golden.key_file(tmp_path)))     # the golden runs' SecOC key
+                   str(golden.key_file(tmp_path)),      # the golden runs' SecOC key
+                   "--start-time", golden.START_TIME)   # ... and start
     assert proc.returncode == 0, proc.stderr[-2000:]
     hil_rep = json.loads(proc.stdout)
     # SIL = HIL: the same ECU trace hash, the same report and the same log, byte for byte, as
     # the SIL's golden trace of this scenario pins them (tests/test_golden.py runs the SIL)
     sil_gold = golden.load()["full_road_section_auto"]
     assert sil_gold["command"].startswith("python -m hil sim --route full_road_section "
-                                          "--mode auto --seed 1 --key-file KEY --out")
+                                          "--mode auto --seed 1 --key-file KEY "
+                                          f"--start-time {golden.START_TIME} --out")
     assert hil_rep["trace_sha256"] == sil_gold["trace_sha256"]
     got = {k: v for k, v in without_bench(hil_rep).items()
            if k not in golden.IGNORED_REPORT_KEYS}
     assert golden.diff(sil_gold["report"], got) == []
     log = tmp_path / "hil" / "bus.log"
-    assert hashlib.sha256(log.read_bytes()).hexdigest() == sil_gold["buslog_sha256"]
+    # (the same bytes but for the channel: the hub's hub0 where the SIL writes sil0)
+    assert log.read_text().startswith("(1767225600.000000) hub0 ")
+    assert hashlib.sha256(same_channel(log.read_bytes(), SIL_CHANNEL)).hexdigest() == \
+        sil_gold["buslog_sha256"]
     # every frame each node reports sending is in the log, and nothing else
     frames = read_log(log)
     sent = {name: n for node in hil_rep["frames_sent"].values() for name, n in node.items()}

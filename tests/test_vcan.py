@@ -19,7 +19,7 @@ import pytest
 
 from hil import vcan
 from hil.bus import SocketcanTap
-from hil.buslog import compare
+from hil.buslog import SIL_CHANNEL, compare, same_channel
 from tests import golden
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +52,8 @@ def test_full_road_section_on_vcan0_is_the_hub_run_and_candump_agrees(tmp_path):
     try:
         proc = hil("run", "--route", "full_road_section", "--mode", "auto", "--seed", "1",
                    "--pace", "lockstep", "--out", str(tmp_path / "run"), "--json",
-                   "--key-file", str(golden.key_file(tmp_path)))
+                   "--key-file", str(golden.key_file(tmp_path)), "--start-time",
+                   golden.START_TIME)
     finally:
         assert vcan.stop_candump(rec)
     rep = run_json(proc)
@@ -61,7 +62,9 @@ def test_full_road_section_on_vcan0_is_the_hub_run_and_candump_agrees(tmp_path):
     gold = golden.load()["full_road_section_auto"]
     assert rep["trace_sha256"] == gold["trace_sha256"]
     log = tmp_path / "run" / "bus.log"
-    assert hashlib.sha256(log.read_bytes()).hexdigest() == gold["buslog_sha256"]
+    assert log.read_text().startswith("(1767225600.000000) vcan0 ")
+    assert hashlib.sha256(same_channel(log.read_bytes(), SIL_CHANNEL)).hexdigest() == \
+        gold["buslog_sha256"]
     sent = sent_total(rep)
     assert rep["bench"]["frames_logged"] == sent and rep["bench"]["logger_kernel_drops"] == 0
     c = compare(tmp_path / "candump.log", log)
@@ -80,15 +83,17 @@ def test_hub_vcan0_and_sil_give_the_same_trace(tmp_path):
     """The same case three ways: over the hub, over vcan0, in one process (hil sim): one
     trace hash, and the two bus runs' logs byte for byte."""
     key = ("--key-file", str(golden.key_file(tmp_path)))
-    common = (*SHORT, "--mode", "auto", "--seed", "3", *key, "--json")
+    common = (*SHORT, "--mode", "auto", "--seed", "3", *key, "--start-time",
+              "2026-12-02T09:00:00Z", "--json")
     hub = run_json(hil("run", "-i", "remote", "--out", str(tmp_path / "hub"), *common))
     kern = run_json(hil("run", "-i", "socketcan", "-c", "vcan0", "--out",
                         str(tmp_path / "vcan"), *common))
     sim = run_json(hil("sim", *common))
     assert hub["bench"]["bus"] == "remote" and kern["bench"]["bus"] == "socketcan"
     assert hub["trace_sha256"] == kern["trace_sha256"] == sim["trace_sha256"]
-    assert (tmp_path / "hub" / "bus.log").read_bytes() == \
-        (tmp_path / "vcan" / "bus.log").read_bytes()
+    hub_log = (tmp_path / "hub" / "bus.log").read_bytes()
+    assert b") hub0 " in hub_log and b") vcan0 " not in hub_log    # each its own channel
+    assert same_channel(hub_log, "vcan0") == (tmp_path / "vcan" / "bus.log").read_bytes()
 
 
 def test_the_fault_campaign_on_vcan0_gives_the_hub_table(tmp_path):

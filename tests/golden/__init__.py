@@ -38,6 +38,8 @@ def key_file(directory: Path) -> Path:
     with os.fdopen(fd, "w") as f:
         f.write(KEY_FILE.read_text())
     return path
+# the golden runs' start time: their bus logs' first time stamp (hil sim --start-time)
+START_TIME = "2026-01-01T00:00:00Z"
 # report keys that are not behaviour: the vehicle file's path as given
 IGNORED_REPORT_KEYS = ("vehicle",)
 
@@ -62,7 +64,7 @@ class Scenario:
             parts.append("--fixed-point")
         if self.duration_s is not None:
             parts.append(f"--duration {self.duration_s:g}")
-        return " ".join(parts + ["--key-file KEY", "--out DIR"])
+        return " ".join(parts + ["--key-file KEY", f"--start-time {START_TIME}", "--out DIR"])
 
 
 SCENARIOS = (
@@ -82,7 +84,7 @@ def run(s: Scenario, trace: Optional[list] = None) -> dict:
     """Run one scenario in process as ``hil sim --out`` does; the pinned values. ``trace`` (a
     list) receives the run's per-tick trace (``hil.sil.SilTrace``)."""
     from hil import sil
-    from hil.buslog import BusLogFile
+    from hil.buslog import SIL_CHANNEL, BusLogFile, parse_start_time
     from hil.cli import _clean
     from hil.config import load_vehicle
     from hil.nodes import LockstepClock
@@ -91,7 +93,7 @@ def run(s: Scenario, trace: Optional[list] = None) -> dict:
     cfg = load_vehicle(ROOT / s.vehicle if s.vehicle else None)
     route = load_route(str(ROOT / s.route) if "/" in s.route else s.route)
     with tempfile.TemporaryDirectory() as tmp:
-        log = BusLogFile(Path(tmp) / "bus.log")
+        log = BusLogFile(Path(tmp) / "bus.log", SIL_CHANNEL, parse_start_time(START_TIME))
         clock = LockstepClock(cfg.sim.plant_dt_s)
         try:
             report, tr = sil.run(cfg, route, s.mode, s.seed, fixed_point=s.fixed_point,
