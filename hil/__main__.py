@@ -59,6 +59,25 @@ def main(argv: list[str] | None = None) -> int:
     alarms.add_parser(sub)
     p = sub.add_parser("keygen", help="write a new SecOC key file (16 random bytes, mode 0600)")
     p.add_argument("file", metavar="FILE")
+    p = sub.add_parser("campaign", help="a validation campaign (a matrix of SIL cases) on "
+                                        "Dask, results in SQLite (hil/campaign.py)")
+    p.add_argument("file", metavar="FILE.toml")
+    p.add_argument("--scheduler", default="local",
+                   help="local (a LocalCluster, one worker process per core) or "
+                        "tcp://127.0.0.1:PORT (a running dask scheduler)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local: worker processes (default: one per core)")
+    p.add_argument("--out", metavar="DIR", help="database and report (default: "
+                   "out/campaign/NAME)")
+    add_json_argument(p)
+    p = sub.add_parser("campaign-case", help="run one case of a campaign database again "
+                                             "(the reproduce column of campaign-report)")
+    p.add_argument("db", metavar="DB")
+    p.add_argument("case_id", metavar="CASE_ID")
+    p = sub.add_parser("campaign-report", help="the summary of a campaign database")
+    p.add_argument("db", metavar="DB")
+    p.add_argument("--out", metavar="DIR", help="where ratios.png goes (default: beside DB)")
+    add_json_argument(p)
     p = sub.add_parser("sim", help="software-in-the-loop: the whole ECU against the plant, "
                                    "with a passive twin on the same road")
     p.add_argument("--route", default="full_road_section",
@@ -96,6 +115,11 @@ def main(argv: list[str] | None = None) -> int:
         from hil import procs
 
         return procs.main(args.command, args)
+    if args.command in ("campaign", "campaign-report", "campaign-case"):
+        from hil import campaign
+
+        return {"campaign": campaign.main, "campaign-report": campaign.report_main,
+                "campaign-case": campaign.case_main}[args.command](args)
     if args.command == "faults":
         from hil import faults
 

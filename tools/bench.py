@@ -184,6 +184,63 @@ def secoc_us(n: int = 20000) -> tuple[float, float]:
     return float(np.median(sign)), float(np.median(verify))
 
 
+def campaign_throughput(quick: bool, tmp: Path) -> dict:
+    """A small campaign (``city``, six seeds; quick: 4 s, two seeds) three ways: a LocalCluster
+    of 1 and of 2 workers, and a ``dask scheduler`` with two ``dask worker`` processes on
+    127.0.0.1, as a real cluster runs. Simulated seconds per wall second of the whole
+    ``hil.campaign.run`` (cluster start and the workers' first imports included), and whether
+    the three gave the same trace hashes."""
+    import socket
+    import sqlite3
+
+    from hil import campaign as cp
+
+    seeds = "[1, 2]" if quick else "{from = 1, to = 6}"
+    dur = 4.0 if quick else 40.0
+    spec = tmp / "bench_campaign.toml"
+    spec.write_text(f'[campaign]\nname = "bench"\nroutes = ["city"]\nseeds = {seeds}\n'
+                    f'duration_s = {dur}\n')
+    camp = cp.load(spec)
+    simulated = dur * len(camp.cases)
+    out, hashes = {}, {}
+
+    def timed(key: str, scheduler: str, workers) -> None:
+        db = tmp / f"{key}.sqlite"
+        t0 = time.perf_counter()
+        cp.run(camp, db, scheduler, workers)
+        out[key] = simulated / (time.perf_counter() - t0)
+        con = sqlite3.connect(db)
+        hashes[key] = sorted(con.execute("SELECT case_id, trace_sha256 FROM cases"))
+        con.close()
+
+    timed("campaign_sim_s_per_s_1_worker", "local", 1)
+    timed("campaign_sim_s_per_s_2_workers", "local", 2)
+    with socket.socket() as sk:
+        sk.bind(("127.0.0.1", 0))
+        port = sk.getsockname()[1]
+    dask = str(Path(sys.executable).parent / "dask")
+    url = f"tcp://127.0.0.1:{port}"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)]
+    try:
+        procs += [subprocess.Popen([dask, "worker", url, "--host", "127.0.0.1", "--nthreads",
+                                    "1", "--no-nanny", "--no-dashboard"],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                  for _ in range(2)]
+        timed("campaign_sim_s_per_s_scheduler_2_workers", url, None)
+    finally:
+        for p in procs:                  # ours, by PID
+            p.terminate()
+        for p in procs:
+            p.wait(20)
+    out["campaign_speedup_2_workers"] = (out["campaign_sim_s_per_s_2_workers"]
+                                         / out["campaign_sim_s_per_s_1_worker"])
+    out["campaign_same_hashes"] = len({json.dumps(h) for h in hashes.values()}) == 1
+    out["campaign_cases"] = len(camp.cases)
+    return out
+
+
 def ga_tune_s() -> float:
     from hil.config import default_vehicle
     from calib.galqr import tune
@@ -226,6 +283,9 @@ def run(quick: bool, progress=print) -> dict:
     rt = hil_run("realtime", 3.0 if quick else 60.0)
     out["realtime_missed_deadline_ratio"] = rt["realtime"]["missed_deadline_ratio"]
     out["realtime"] = rt["realtime"]
+    progress("campaign throughput: 1 and 2 local workers, a scheduler with 2 workers ...")
+    with tempfile.TemporaryDirectory() as tmp:
+        out.update(campaign_throughput(quick, Path(tmp)))
     progress("GA-LQR tuning ...")
     out["ga_tune_s"] = ga_tune_s()
     out["goals"] = {k: {"goal": f"{op} {v:g}", "met": (out[k] <= v if op == "<=" else

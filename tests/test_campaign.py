@@ -1,0 +1,212 @@
+"""Validation campaigns on Dask (issue 21): the campaign file, one case = one ``hil sim``,
+the same rows from a LocalCluster and from a scheduler with two workers started as separate
+processes on 127.0.0.1, a worker killed mid-campaign losing no case, resuming, the report."""
+
+import json
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from calib.errors import ConfigError
+from hil import campaign as cp
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("campaign")]
+
+SMALL = """
+[campaign]
+name = "small"
+routes = ["city"]
+seeds = [1, 2]
+duration_s = DURATION
+
+[[vehicle]]
+
+[[vehicle]]
+file = "{suv}"
+sprung_mass_kg = [1.2]
+"""
+
+
+def write(tmp_path: Path, duration: float = 6, seeds: str = "[1, 2]") -> Path:
+    path = tmp_path / "small.toml"
+    path.write_text(SMALL.replace("DURATION", str(duration)).replace("[1, 2]", seeds)
+                    .format(suv=ROOT / "hil" / "vehicles" / "suv.toml"))
+    return path
+
+
+def hil(*args, timeout=900) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True,
+                          cwd=ROOT, timeout=timeout)
+
+
+def rows(db: Path) -> dict:
+    con = sqlite3.connect(db)
+    try:
+        cols = [d[1] for d in con.execute("PRAGMA table_info(cases)")]
+        out = {}
+        for r in con.execute("SELECT * FROM cases"):
+            d = dict(zip(cols, r))
+            d.pop("wall_s"), d.pop("worker")              # (timing and place, not results)
+            d["command"] = d["command"].replace(str(db), "DB")
+            out[d["case_id"]] = d
+        segs = con.execute("SELECT * FROM segments ORDER BY case_id, idx").fetchall()
+    finally:
+        con.close()
+    return {"cases": out, "segments": segs}
+
+
+def test_the_campaign_file_is_checked_in_one_line(tmp_path):
+    bad = {"[campaign]\n": "missing key 'campaign.routes'",
+           "[campaign]\nroutes = ['city']\nseeds = {from = 3, to = 1}\n": "campaign.seeds",
+           "[campaign]\nroutes = ['nowhere']\n": "route nowhere",
+           "[campaign]\nroutes = ['city']\nspeed = 3\n": "unknown key 'campaign.speed'",
+           "[campaign]\nroutes = ['city']\n[[vehicle]]\nmass = [1]\n": "vehicle key 'mass'",
+           "[campaign\n": "not valid TOML"}
+    for text, what in bad.items():
+        path = tmp_path / "c.toml"
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=what.replace("[", r"\[")):
+            cp.load(path)
+    proc = hil("campaign", str(path))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+
+
+def test_the_matrix_expands_and_case_ids_are_stable(tmp_path):
+    camp = cp.load(write(tmp_path))
+    assert len(camp.cases) == 4                 # 1 route x 2 seeds x (default, suv x1.2)
+    assert [c["vehicle"]["factors"] for c in camp.cases] == [{}, {"sprung_mass_kg": 1.2}] * 2
+    assert len({cp.case_id(c) for c in camp.cases}) == 4
+    assert [cp.case_id(c) for c in cp.load(write(tmp_path)).cases] == \
+        [cp.case_id(c) for c in camp.cases]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(argv: list[str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen(argv, cwd=ROOT, stdout=open(log, "w"), stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:                             # ours, by PID
+        if p.poll() is None:
+            p.terminate()
+    for p in procs:
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5)
+
+
+def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_path):
+    """Two workers started as separate processes on 127.0.0.1 under a dask scheduler, and
+    a LocalCluster: the same rows; each case's trace is the one a plain ``hil sim`` (or,
+    for a vehicle variant, ``hil campaign-case``) gives."""
+    path = write(tmp_path)
+    local = hil("campaign", str(path), "--workers", "2", "--out", str(tmp_path / "local"),
+                "--json")
+    assert local.returncode in (0, 1), local.stderr[-2000:]
+    port = _free_port()
+    url = f"tcp://127.0.0.1:{port}"
+    procs = [_start([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port",
+                     str(port), "--no-dashboard"], tmp_path / "scheduler.log")]
+    try:
+        for i in range(2):
+            procs.append(_start([str(BIN / "dask"), "worker", url, "--host", "127.0.0.1",
+                                 "--nthreads", "1", "--no-nanny", "--no-dashboard"],
+                                tmp_path / f"worker{i}.log"))
+        remote = hil("campaign", str(path), "--scheduler", url, "--out",
+                     str(tmp_path / "remote"), "--json")
+    finally:
+        _stop(procs)
+    assert remote.returncode == local.returncode, remote.stderr[-2000:]
+    a, b = rows(tmp_path / "local" / "campaign.sqlite"), rows(tmp_path / "remote" /
+                                                              "campaign.sqlite")
+    assert a == b and len(a["cases"]) == 4
+    for row in a["cases"].values():
+        if row["command"].startswith("python -m hil sim"):
+            argv = row["command"].split()[4:-2]             # (without --key-file KEY)
+            sim = hil("sim", *argv, "--json")
+            assert json.loads(sim.stdout)["trace_sha256"] == row["trace_sha256"]
+        else:
+            argv = row["command"].replace("DB", str(tmp_path / "local" / "campaign.sqlite"))
+            res = hil(*argv.split()[3:])                     # campaign-case DB CASE_ID
+            assert json.loads(res.stdout)["trace_sha256"] == row["trace_sha256"]
+
+
+def test_a_killed_worker_loses_no_case_and_a_rerun_skips_what_is_done(tmp_path):
+    path = write(tmp_path, duration=8, seeds="[1, 2, 3, 4]")
+    port = _free_port()
+    url = f"tcp://127.0.0.1:{port}"
+    out = tmp_path / "run"
+    procs = [_start([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port",
+                     str(port), "--no-dashboard"], tmp_path / "scheduler.log")]
+    try:
+        workers = [_start([str(BIN / "dask"), "worker", url, "--host", "127.0.0.1",
+                           "--nthreads", "1", "--no-nanny", "--no-dashboard"],
+                          tmp_path / f"worker{i}.log") for i in range(2)]
+        procs += workers
+        run = subprocess.Popen([sys.executable, "-m", "hil", "campaign", str(path),
+                                "--scheduler", url, "--out", str(out), "--json"], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        db = out / "campaign.sqlite"
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline and run.poll() is None:
+            if db.exists() and _count(db) >= 1:
+                break
+            time.sleep(0.2)
+        os.kill(workers[0].pid, signal.SIGKILL)         # our own worker, by PID, mid-run
+        stdout, stderr = run.communicate(timeout=900)
+    finally:
+        _stop(procs)
+    assert run.returncode in (0, 1), stderr[-2000:]
+    con = sqlite3.connect(db)
+    ids = [r[0] for r in con.execute("SELECT case_id FROM cases")]
+    con.close()
+    assert len(ids) == len(set(ids)) == 8            # every case, once
+    again = hil("campaign", str(path), "--out", str(out), "--json", "--workers", "1")
+    rep = json.loads(again.stdout)
+    assert rep["this_run"] == {"run": 0, "skipped": 8, "failed": 0} and rep["cases"] == 8
+
+
+def _count(db: Path) -> int:
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        try:
+            return con.execute("SELECT COUNT(*) FROM cases").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0
+
+
+def test_the_report_names_the_worst_cases_and_the_limits(tmp_path):
+    path = write(tmp_path, duration=40, seeds="[1]")
+    proc = hil("campaign", str(path), "--workers", "2", "--out", str(tmp_path / "r"), "--json")
+    rep = json.loads(proc.stdout)
+    assert rep["cases"] == 2 and proc.returncode == (0 if rep["verdict"] == "pass" else 1)
+    groups = {(r["vehicle"], r["mode"], r["grade"]) for r in rep["ratios"]}
+    assert ("default", "comfort", "B") in groups
+    assert ("suv sprung_mass_kgx1.2", "comfort", "B") in groups
+    for r in rep["ratios"]:
+        assert r["limit"] > 0 and r["mean"] >= r["limit"] - 1e-9     # no controller beats it
+    w = rep["worst"][0]
+    assert w["gap"] == max(x["gap"] for x in rep["worst"]) and w["command"].startswith(
+        "python -m hil")
+    assert (tmp_path / "r" / "ratios.png").stat().st_size > 10_000
+    again = hil("campaign-report", str(tmp_path / "r" / "campaign.sqlite"), "--json")
+    assert json.loads(again.stdout)["ratios"] == rep["ratios"]
