@@ -15,6 +15,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from firmware import params as fp
+from firmware import safety
 from hil import secoc, verdict
 from hil.codec import Codec
 from hil.config import CONTROLLERS, RUN_MODES as MODES, ConfigError, VehicleConfig
@@ -128,6 +129,13 @@ def fault_ticks(trace: SilTrace) -> int:
     return int(np.count_nonzero(trace.arrays["faults"]))
 
 
+def mode_switches(mode: np.ndarray, faults: np.ndarray) -> int:
+    """The mode logic's switches: changes of the active mode outside fail-safe ticks (a
+    fail-safe opens the bridge whatever the mode; the fail-safe checks judge those ticks)."""
+    kept = mode[(faults.astype(np.int64) & safety.SAFETY_RELEVANT) == 0]
+    return int(np.count_nonzero(kept[1:] != kept[:-1]))
+
+
 def merge_traces(dt: float, plant: dict, ecu_cols: dict) -> SilTrace:
     """One trace from the plant's and the ECU's per-tick records (the shorter one rules)."""
     n = min(len(plant["ba"]), len(ecu_cols["mode"]))
@@ -206,8 +214,7 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
             "harvested_w": harvested / t, "road_power_w": road_power,
             "road_estimate_rmse_m": rms(a["road_est"][sel] - a["zf"][sel]),
         })
-    modes_seq = a["mode"]
-    switches = int(np.count_nonzero(modes_seq[1:] != modes_seq[:-1]))
+    switches = mode_switches(a["mode"], a["faults"])
     grades_seq = [s.grade for s in route.segments]
     grade_changes = sum(1 for x, y in zip(grades_seq, grades_seq[1:]) if min(3, GRADES.index(x)) != min(3, GRADES.index(y)))
     return {

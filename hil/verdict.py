@@ -14,7 +14,9 @@ The checks of a drive (``hil sim``, ``hil run``; :func:`run_checks`):
   stale or unauthentic (SecOC) command at the plant (in realtime: no invalid or unauthentic
   one); in realtime
   the same under limits (:class:`Limits`, options ``--max-missed-ratio``/``--max-lost-ratio``);
-* ``mode_switches`` in auto mode: at most the route's grade changes + 1.
+* ``mode_switches`` in auto mode: at most the route's grade changes + 1 (the active mode's
+  changes outside fail-safe ticks: a fail-safe opens the bridge whatever the mode, and the
+  fail-safe checks above judge it).
 """
 
 from __future__ import annotations

@@ -106,3 +106,18 @@ def test_sim_cli_carries_the_verdict_in_json_junit_and_exit_code(tmp_path):
     cases = [c for s in xml for c in s]
     assert [c.name for c in cases] == [c["name"] for c in rep["checks"]]
     assert all(c.is_passed for c in cases)
+
+
+def test_a_fail_safe_episode_is_not_a_mode_switch_but_chatter_is():
+    import numpy as np
+
+    from firmware import safety
+    from hil.sil import mode_switches
+
+    mode = np.array([2, 2, 0, 0, 2, 2, 3, 3], dtype=np.int8)
+    faults = np.zeros(8, dtype=np.int32)
+    assert mode_switches(mode, faults) == 3            # comfort -> passive -> comfort -> safety
+    faults[2:4] = safety.FAULT_PLAUSIBILITY             # the passive ticks were a fail-safe
+    assert mode_switches(mode, faults) == 1
+    faults[2:4] = safety.FAULT_RATE                     # not safety-relevant: a real switch
+    assert mode_switches(mode, faults) == 3
