@@ -130,10 +130,12 @@ def load(path: str | Path) -> Campaign:
     max_gap = crit.get("max_gap")
     if max_gap is not None and not (isinstance(max_gap, (int, float)) and max_gap >= 0):
         raise ConfigError(f"{path}: criteria.max_gap must be a number >= 0")
-    cases = tuple({"route": r, "seed": s, "vehicle": v, "mode": m, "fixed_point": f,
-                   "noise": n, "duration_s": duration}
-                  for r, s, v, m, f, n in itertools.product(routes, seeds, vehicles, modes,
-                                                            fixed, noise))
+    cases = {}                           # (a case listed twice is one case)
+    for r, s, v, m, f, n in itertools.product(routes, seeds, vehicles, modes, fixed, noise):
+        case = {"route": r, "seed": s, "vehicle": v, "mode": m, "fixed_point": f, "noise": n,
+                "duration_s": duration}
+        cases.setdefault(case_id(case), case)
+    cases = tuple(cases.values())
     return Campaign(str(c.get("name", path.stem)), cases, bool(crit.get("acceptance", True)),
                     None if max_gap is None else float(max_gap))
 

@@ -210,3 +210,12 @@ def test_the_report_names_the_worst_cases_and_the_limits(tmp_path):
     assert (tmp_path / "r" / "ratios.png").stat().st_size > 10_000
     again = hil("campaign-report", str(tmp_path / "r" / "campaign.sqlite"), "--json")
     assert json.loads(again.stdout)["ratios"] == rep["ratios"]
+
+
+def test_the_shipped_vehicle_family_campaign_loads():
+    """campaigns/vehicle_family.toml: both cars, each key of [vehicle] at two factors, ten
+    seeds: 22 vehicles x 10 = 220 distinct cases, every variant a plausible vehicle."""
+    camp = cp.load(ROOT / "campaigns" / "vehicle_family.toml")
+    assert len(camp.cases) == 220 == len({cp.case_id(c) for c in camp.cases})
+    assert camp.max_gap == 0.03 and camp.acceptance
+    assert {c["vehicle"]["name"] for c in camp.cases} == {"default", "suv"}
