@@ -220,10 +220,7 @@ def _vehicles(path: Path, table: dict) -> list[dict]:
         if factors:                       # a variant the bench cannot simulate: said now
             from hil.config import check_plausible
 
-            try:
-                check_plausible(vehicle_config(spec, 1.0), f"{path}: vehicle {_label(spec)}")
-            except ConfigError as exc:
-                raise ConfigError(str(exc)) from None
+            check_plausible(vehicle_config(spec, 1.0), f"{path}: vehicle {_label(spec)}")
         out.append(spec)
     return out
 
@@ -476,7 +473,7 @@ def report(db_path: Path) -> dict:
             criteria[key] = criteria.get(key, 0) + 1
     groups: dict[tuple, list] = {}
     for s in segs:
-        vehicle = s[1] + "".join(f" {k}x{v:g}" for k, v in sorted(json.loads(s[2]).items()))
+        vehicle = _label({"name": s[1], "factors": json.loads(s[2])})
         groups.setdefault((vehicle, s[3], s[4], s[6]), []).append((s[7] + s[8], s[7]))
     rows = []
     for (vehicle, mode, grade, limit_name), vals in sorted(groups.items()):
@@ -570,7 +567,7 @@ def render(rep: dict) -> None:
     for col in ("vehicle", "mode", "segment", "value", "limit", "gap", "reproduce"):
         t.add_column(col)
     for w in rep["worst"]:
-        t.add_row(w["vehicle"] + "".join(f" {k}x{v:g}" for k, v in w["factors"].items()),
+        t.add_row(_label({"name": w["vehicle"], "factors": w["factors"]}),
                   w["mode"], w["segment"], f"{w['value']:.3f}", f"{w['limit']:.3f}",
                   f"{w['gap']:+.3f}", w["command"])
     con.print(t)

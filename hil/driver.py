@@ -16,14 +16,15 @@ SUITS = {"energy": "a smooth road: harvest energy", "comfort": "ride comfort fir
          "holding together"}
 
 
-def _name(names, value, unknown: str) -> str:
+def name_of(names, value, unknown):
+    """The name of an enumerated value (a mode, a grade), ``unknown`` where there is none."""
     return names[int(value)] if value is not None and 0 <= int(value) < len(names) else unknown
 
 
 def describe(view: dict, t_s: float) -> dict:
     """The driver's picture of the ECU, JSON-ready."""
     rec = view.get("REC_RECOMMENDED_MODE")
-    grade = _name(GRADE_NAMES, view.get("REC_ESTIMATED_GRADE",
+    grade = name_of(GRADE_NAMES, view.get("REC_ESTIMATED_GRADE",
                                         view.get("ESTIMATED_GRADE")), "unknown")
     reason = int(view.get("REC_REASON", view.get("REASON", fm.REASON_NONE)) or 0)
     faults = safety.fault_names(fault_word(view))
@@ -39,11 +40,11 @@ def describe(view: dict, t_s: float) -> dict:
         why = "the road grade is not estimated yet"
     return {
         "t_s": round(t_s, 3),
-        "recommended": _name(MODE_NAMES, rec, None) if rec is not None else None,
+        "recommended": name_of(MODE_NAMES, rec, None) if rec is not None else None,
         "grade": grade,
         "why": why,
         "override": bool(view.get("REC_OVERRIDE", 0)),
-        "active": _name(MODE_NAMES, view.get("ACTIVE_MODE"), None),
+        "active": name_of(MODE_NAMES, view.get("ACTIVE_MODE"), None),
         "speed_mps": view.get("SPEED"),
         "ba_rms_mps2": view.get("BA_RMS"),
         "dtd_rms_mm": None if view.get("DTD_RMS") is None else 1e3 * view["DTD_RMS"],

@@ -277,8 +277,9 @@ def _injector(args, node: str):
 
 def _mode_name(mode: int) -> str:
     from firmware.params import MODE_NAMES
+    from hil.driver import name_of
 
-    return MODE_NAMES[mode] if 0 <= mode < len(MODE_NAMES) else f"mode {mode} (invalid)"
+    return name_of(MODE_NAMES, mode, f"mode {mode} (invalid)")
 
 
 def _tell_recommendation(app, t: float) -> None:

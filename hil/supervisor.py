@@ -35,6 +35,7 @@ from hil.bus import (RT_PRIORITY, BusError, BusSpec, Hub, SocketcanTap, close_bu
                      die_with_parent, resolve, rt_of, terminate)
 from hil.buslog import HUB_CHANNEL, LOG_FORMATS, BusLogFile, convert
 from hil.codec import Codec, fault_word
+from hil.driver import name_of
 from hil.nodes import ID, LockstepClock, message_name
 
 EXIT_NODE = 1
@@ -243,10 +244,10 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
     v = logger.view
 
     def mode_name(key):
-        return _name(MODE_NAMES, v.get(key), "-")
+        return name_of(MODE_NAMES, v.get(key), "-")
 
     def grade_name(key):
-        return _name(GRADE_NAMES, v.get(key), "?")
+        return name_of(GRADE_NAMES, v.get(key), "?")
 
     t = Table(title=f"hil run: {route.name}, mode {mode}, {pace}", show_header=False)
     k = logger.ticks
@@ -264,8 +265,7 @@ def _view(logger: Logger, n: int, dt: float, route, mode: str, pace: str):
                                   f"{1e3 * v.get('ECU_STATUS.DTD_RMS', 0.0):.2f} mm")
     t.add_row("energy stored / drawn", f"{v.get('ENERGY_STATUS.STORED_ENERGY', 0.0):8.1f} J / "
                                        f"{v.get('ENERGY_STATUS.SUPPLY_ENERGY', 0.0):8.1f} J")
-    word = fault_word({k.split(".", 1)[1]: x for k, x in v.items() if k.startswith("ECU_STATUS.")})
-    t.add_row("faults", ", ".join(safety.fault_names(word)) or "none")
+    t.add_row("faults", ", ".join(safety.fault_names(_status_faults(v))) or "none")
     t.add_row("frames logged", f"{logger.log.count}")
     return t
 
@@ -624,19 +624,21 @@ def _stopped(pid: int) -> bool:
     return _proc_stat(pid)[:1] in (["T"], ["t"])
 
 
+def _status_faults(view: dict) -> int:
+    """The fault word of the last ECU_STATUS in the logger's view."""
+    return fault_word({k.split(".", 1)[1]: x for k, x in view.items()
+                       if k.startswith("ECU_STATUS.")})
+
+
 def _line(logger: Logger, dt: float) -> str:
     """The progress line's detail without a terminal: time, grade, modes, faults."""
     v = logger.view
-    word = fault_word({k.split(".", 1)[1]: x for k, x in v.items() if k.startswith("ECU_STATUS.")})
+    word = _status_faults(v)
     grade = v.get("ECU_STATUS.ESTIMATED_GRADE")
     rec, act = v.get("MODE_RECOMMEND.RECOMMENDED_MODE"), v.get("ECU_STATUS.ACTIVE_MODE")
-    return (f"t = {logger.ticks * dt:.1f} s, grade {_name(GRADE_NAMES, grade, '?')}, "
-            f"recommended {_name(MODE_NAMES, rec, '-')}, active {_name(MODE_NAMES, act, '-')}"
+    return (f"t = {logger.ticks * dt:.1f} s, grade {name_of(GRADE_NAMES, grade, '?')}, "
+            f"recommended {name_of(MODE_NAMES, rec, '-')}, active {name_of(MODE_NAMES, act, '-')}"
             + (f", faults {', '.join(safety.fault_names(word))}" if word else ""))
-
-
-def _name(names, value, unknown: str) -> str:
-    return names[int(value)] if value is not None and 0 <= int(value) < len(names) else unknown
 
 
 def _watch(nodes: dict, hub: Optional[Hub], logger: Logger, n: int, dt: float, route,

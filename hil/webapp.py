@@ -25,7 +25,7 @@ from typing import Optional
 from aiohttp import web
 
 from firmware.params import MODE_NAMES
-from hil.driver import describe
+from hil.driver import describe, name_of
 
 HOST = "127.0.0.1"
 
@@ -105,8 +105,8 @@ class WebApp:
     async def _state(self, _request):
         node = self.node
         d = describe(dict(node.view), node.t * node.dt)
-        d["sent"] = [{"t_s": round(t, 3), "kind": k, "mode": MODE_NAMES[m]
-                      if 0 <= m < len(MODE_NAMES) else m} for t, k, m in list(node.log)[-8:]]
+        d["sent"] = [{"t_s": round(t, 3), "kind": k, "mode": name_of(MODE_NAMES, m, m)}
+                     for t, k, m in list(node.log)[-8:]]
         d["queued"] = len(node.queued)
         return web.json_response(d, headers={"Cache-Control": "no-store"})
 

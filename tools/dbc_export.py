@@ -36,12 +36,6 @@ def unique_signal_names(matrix) -> dict[tuple[str, str], str]:
     return names
 
 
-def declared_raw_range(sig) -> tuple[int, int]:
-    from hil.codec import declared_raw_range as raw
-
-    return raw(sig)
-
-
 def export(out: Path, formats=FORMATS, dbc: Path | None = None) -> dict[str, Path]:
     """Write each format into ``out``; returns format -> path."""
     import canmatrix.formats
@@ -160,6 +154,8 @@ def _compu_method(cm, sig, q) -> None:
     for value, name in sorted((sig.choices or {}).items()):
         const = lxml.etree.SubElement(scale(int(value), int(value)), q("COMPU-CONST"))
         lxml.etree.SubElement(const, q("VT")).text = str(name)
+    from hil.codec import declared_raw_range
+
     lo, hi = declared_raw_range(sig)
     coeffs = lxml.etree.SubElement(scale(lo, hi), q("COMPU-RATIONAL-COEFFS"))
     num = lxml.etree.SubElement(coeffs, q("COMPU-NUMERATOR"))
