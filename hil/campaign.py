@@ -446,6 +446,70 @@ def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
     return counts
 
 
+class SeparateCluster:
+    """``dask scheduler`` and N ``dask worker`` processes on 127.0.0.1, each its own process
+    as on a real cluster (the bench and the tests use it)::
+
+        with SeparateCluster(2, log_dir) as c:
+            run(campaign, db, c.url)
+
+    ``c.workers`` are the worker processes (ours, by PID). On leaving, the workers are
+    stopped before the scheduler (a worker whose scheduler is gone retries to reach it), each
+    SIGTERM then, if it has not ended in ``grace_s``, SIGKILL: nothing is left running."""
+
+    def __init__(self, n_workers: int, log_dir: Optional[Path] = None, grace_s: float = 10.0):
+        self.n_workers, self.log_dir, self.grace_s = n_workers, log_dir, grace_s
+        self.scheduler = None
+        self.workers: list = []
+        with socket.socket() as sk:
+            sk.bind(("127.0.0.1", 0))
+            self.port = sk.getsockname()[1]
+        self.url = f"tcp://127.0.0.1:{self.port}"
+
+    def _start(self, argv: list[str], name: str):
+        import subprocess
+
+        dask = str(Path(sys.executable).parent / "dask")
+        out = (open(self.log_dir / f"{name}.log", "w") if self.log_dir is not None
+               else subprocess.DEVNULL)
+        try:
+            return subprocess.Popen([dask, *argv], stdout=out, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True)
+        finally:
+            if out is not subprocess.DEVNULL:
+                out.close()
+
+    def __enter__(self) -> "SeparateCluster":
+        self.scheduler = self._start(["scheduler", "--host", "127.0.0.1", "--port",
+                                      str(self.port), "--no-dashboard"], "scheduler")
+        try:
+            for i in range(self.n_workers):
+                self.workers.append(self._start(
+                    ["worker", self.url, "--host", "127.0.0.1", "--nthreads", "1",
+                     "--no-nanny", "--no-dashboard"], f"worker{i}"))
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        import subprocess
+
+        for group in (self.workers, [self.scheduler] if self.scheduler else []):
+            for p in group:
+                if p.poll() is None:
+                    p.terminate()
+            for p in group:
+                try:
+                    p.wait(self.grace_s)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(10)
+
+
 # ------------------------------------------------------------------ the report
 def report(db_path: Path) -> dict:
     """The summary of a campaign database: cases and pass rate; per criterion (each check

@@ -5,7 +5,6 @@ processes on 127.0.0.1, a worker killed mid-campaign losing no case, resuming, t
 import json
 import os
 import signal
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -18,7 +17,6 @@ from calib.errors import ConfigError
 from hil import campaign as cp
 
 ROOT = Path(__file__).resolve().parents[1]
-BIN = Path(sys.executable).parent
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("campaign")]
 
 SMALL = """
@@ -89,29 +87,6 @@ def test_the_matrix_expands_and_case_ids_are_stable(tmp_path):
         [cp.case_id(c) for c in camp.cases]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _start(argv: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen(argv, cwd=ROOT, stdout=open(log, "w"), stderr=subprocess.STDOUT,
-                            start_new_session=True)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:                             # ours, by PID
-        if p.poll() is None:
-            p.terminate()
-    for p in procs:
-        try:
-            p.wait(20)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(5)
-
-
 def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_path):
     """Two workers started as separate processes on 127.0.0.1 under a dask scheduler, and
     a LocalCluster: the same rows; each case's trace is the one a plain ``hil sim`` (or,
@@ -120,19 +95,9 @@ def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_pa
     local = hil("campaign", str(path), "--workers", "2", "--out", str(tmp_path / "local"),
                 "--json")
     assert local.returncode in (0, 1), local.stderr[-2000:]
-    port = _free_port()
-    url = f"tcp://127.0.0.1:{port}"
-    procs = [_start([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port",
-                     str(port), "--no-dashboard"], tmp_path / "scheduler.log")]
-    try:
-        for i in range(2):
-            procs.append(_start([str(BIN / "dask"), "worker", url, "--host", "127.0.0.1",
-                                 "--nthreads", "1", "--no-nanny", "--no-dashboard"],
-                                tmp_path / f"worker{i}.log"))
-        remote = hil("campaign", str(path), "--scheduler", url, "--out",
+    with cp.SeparateCluster(2, tmp_path) as cluster:
+        remote = hil("campaign", str(path), "--scheduler", cluster.url, "--out",
                      str(tmp_path / "remote"), "--json")
-    finally:
-        _stop(procs)
     assert remote.returncode == local.returncode, remote.stderr[-2000:]
     a, b = rows(tmp_path / "local" / "campaign.sqlite"), rows(tmp_path / "remote" /
                                                               "campaign.sqlite")
@@ -150,29 +115,20 @@ def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_pa
 
 def test_a_killed_worker_loses_no_case_and_a_rerun_skips_what_is_done(tmp_path):
     path = write(tmp_path, duration=8, seeds="[1, 2, 3, 4]")
-    port = _free_port()
-    url = f"tcp://127.0.0.1:{port}"
     out = tmp_path / "run"
-    procs = [_start([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port",
-                     str(port), "--no-dashboard"], tmp_path / "scheduler.log")]
-    try:
-        workers = [_start([str(BIN / "dask"), "worker", url, "--host", "127.0.0.1",
-                           "--nthreads", "1", "--no-nanny", "--no-dashboard"],
-                          tmp_path / f"worker{i}.log") for i in range(2)]
-        procs += workers
+    with cp.SeparateCluster(2, tmp_path) as cluster:
         run = subprocess.Popen([sys.executable, "-m", "hil", "campaign", str(path),
-                                "--scheduler", url, "--out", str(out), "--json"], cwd=ROOT,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                "--scheduler", cluster.url, "--out", str(out), "--json"],
+                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
         db = out / "campaign.sqlite"
         deadline = time.monotonic() + 600
         while time.monotonic() < deadline and run.poll() is None:
             if db.exists() and _count(db) >= 1:
                 break
             time.sleep(0.2)
-        os.kill(workers[0].pid, signal.SIGKILL)         # our own worker, by PID, mid-run
+        os.kill(cluster.workers[0].pid, signal.SIGKILL)  # our own worker, by PID, mid-run
         stdout, stderr = run.communicate(timeout=900)
-    finally:
-        _stop(procs)
     assert run.returncode in (0, 1), stderr[-2000:]
     con = sqlite3.connect(db)
     ids = [r[0] for r in con.execute("SELECT case_id FROM cases")]

@@ -190,7 +190,6 @@ def campaign_throughput(quick: bool, tmp: Path) -> dict:
     127.0.0.1, as a real cluster runs. Simulated seconds per wall second of the whole
     ``hil.campaign.run`` (cluster start and the workers' first imports included), and whether
     the three gave the same trace hashes."""
-    import socket
     import sqlite3
 
     from hil import campaign as cp
@@ -215,25 +214,8 @@ def campaign_throughput(quick: bool, tmp: Path) -> dict:
 
     timed("campaign_sim_s_per_s_1_worker", "local", 1)
     timed("campaign_sim_s_per_s_2_workers", "local", 2)
-    with socket.socket() as sk:
-        sk.bind(("127.0.0.1", 0))
-        port = sk.getsockname()[1]
-    dask = str(Path(sys.executable).parent / "dask")
-    url = f"tcp://127.0.0.1:{port}"
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--no-dashboard"], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)]
-    try:
-        procs += [subprocess.Popen([dask, "worker", url, "--host", "127.0.0.1", "--nthreads",
-                                    "1", "--no-nanny", "--no-dashboard"],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-                  for _ in range(2)]
-        timed("campaign_sim_s_per_s_scheduler_2_workers", url, None)
-    finally:
-        for p in procs:                  # ours, by PID
-            p.terminate()
-        for p in procs:
-            p.wait(20)
+    with cp.SeparateCluster(2) as cluster:   # stopped (by PID) on the way out
+        timed("campaign_sim_s_per_s_scheduler_2_workers", cluster.url, None)
     out["campaign_speedup_2_workers"] = (out["campaign_sim_s_per_s_2_workers"]
                                          / out["campaign_sim_s_per_s_1_worker"])
     out["campaign_same_hashes"] = len({json.dumps(h) for h in hashes.values()}) == 1
