@@ -302,8 +302,10 @@ static int32_t force_of(fx_state_t *s, int ctrl)
     case CTRL_PID:
         return pid_step(&s->pid, neg(s->ba), FX_PID_KP_Q31, FX_PID_KI_Q31, FX_PID_KD_Q31,
                         &tp, &ti, &td);
-    case CTRL_BPPID:
-        return bppid_step(s);
+    case CTRL_BPPID: {         /* the network's PID, then the state feedback under it */
+        int32_t u = bppid_step(s);
+        return add(u, lqr_force(FX_K_COMFORT_Q31, FX_K_COMFORT_Q31_FRAC, s->x));
+    }
     case CTRL_REGEN:
         return regen_force(s->x);
     default:

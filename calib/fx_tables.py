@@ -104,6 +104,7 @@ def build_tables(p: EcuParams) -> FxTables:
         regen_min_ratio=fx(c.regen_min_voltage_ratio, F_VOLT, F_VOLT),
         k_safety=tuple(fx(c.k_safety[j], STATE_FRAC[j], F_FORCE) for j in range(5)),
         k_comprehensive=tuple(fx(c.k_comprehensive[j], STATE_FRAC[j], F_FORCE) for j in range(5)),
+        k_comfort=tuple(fx(c.k_comfort[j], STATE_FRAC[j], F_FORCE) for j in range(5)),
         skyhook_c=fx(c.skyhook_c, F_VEL, F_FORCE),
         skyhook_passive_c=fx(c.skyhook_passive_c, F_VEL, F_FORCE),
         regen_c=fx(c.regen_c, F_VEL, F_FORCE), regen_skyhook_c=fx(c.regen_skyhook_c, F_VEL, F_FORCE),

@@ -269,3 +269,14 @@ def safety_design(model: LinearModel, bound: float = 1.0) -> LimitResult:
     _, w, _, _ = _dual_max(fam.rel, 2, (bound, bound))
     K5, ratios = fam.evaluate(w)
     return LimitResult(float(ratios[2]), w, K5, ratios)
+
+
+def comfort_design(model: LinearModel, bounds: tuple[float, float] = (1.0, 1.0)) -> LimitResult:
+    """Comfort-mode state feedback for the ECU: min BA with SWS and DTD <= ``bounds`` x
+    passive, on the relative model (blind to the common mode) by the Lagrange dual, ratios
+    computed exactly on the full model. Its gain shapes the suspension's stiffness and
+    feeds back the tyre force; its body-velocity part is the skyhook the BP-PID adds."""
+    fam = RelativeFamily(model)
+    _, w, _, _ = _dual_max(fam.rel, 0, bounds)
+    K5, ratios = fam.evaluate(w)
+    return LimitResult(float(ratios[0]), w, K5, ratios)

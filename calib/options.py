@@ -55,7 +55,14 @@ class DesignOptions:
     skyhook_c: float = 3000.0
     pid_ki: float = 3500.0
     pid_leak_s: float = 1.5               # time constant of the incremental PID's leak
-    bp_scale: tuple = (10.0, 3000.0, 0.02)   # K_d: the loop K_d / (m_s dt) must stay well below 1
+    # comfort (BP-PID around a state feedback, calib.ecu_params.comfort_gains): the state
+    # feedback's exact SWS and DTD ratios at most these x passive, the suspension's static
+    # stiffness at least comfort_min_stiffness x the spring's; the network's gain ranges:
+    # K_p up to r0 m_s, K_i up to r1 x the design's body-velocity gain, K_d up to r2 m_s
+    # (the loop K_d / (m_s dt) must stay well below 1)
+    comfort_bound: tuple = (0.90, 0.99)
+    comfort_min_stiffness: float = 1.0
+    bp_scale_ratio: tuple = (0.03125, 1.0, 6.25e-5)
     bp_eta: float = 0.02
     bp_alpha: float = 0.05
     bp_seed: int = 7

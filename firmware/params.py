@@ -142,6 +142,7 @@ class ModeParams:
 class ControlParams:
     k_safety: np.ndarray         # (5,) u = -K x_hat
     k_comprehensive: np.ndarray  # (5,) GA-LQR
+    k_comfort: np.ndarray        # (5,) comfort: state feedback under the BP-PID
     skyhook_c: float             # N s/m on body velocity
     skyhook_passive_c: float     # N s/m on relative velocity (added damping)
     pid_kp: float                # N per m/s^2 of BA error

@@ -133,3 +133,25 @@ def test_cli_rejects_bad_arguments():
     proc = subprocess.run([sys.executable, "-m", "tools.analysis", "passive", "--grade", "B",
                            "--speed", "-3"], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert proc.returncode == 2 and "speed" in proc.stderr.lower()
+
+
+@pytest.mark.parametrize("vehicle", ["default", "suv"])
+def test_the_comfort_design_follows_the_vehicle(vehicle):
+    """calib.ecu_params.comfort_total_gain for each car: exact SWS and DTD ratios within
+    the design's bounds, the static stiffness rule, BA near that car's own limit, and a loop
+    stable over the BP-PID's whole K_i range (build raises otherwise)."""
+    from calib.ecu_params import build, comfort_total_gain
+    from calib.options import DesignOptions
+
+    cfg = default_vehicle() if vehicle == "default" else SUV
+    opts = DesignOptions()
+    model = linear_model(cfg.vehicle, gq_of("C"), 20.0)
+    res = comfort_total_gain(cfg, opts, model)
+    ks = cfg.vehicle.spring_stiffness_n_per_m
+    assert res.ratios[1] <= opts.comfort_bound[0] and res.ratios[2] <= 1.0
+    assert ks + res.K[2] >= opts.comfort_min_stiffness * ks
+    gap = res.value - limits(cfg, "C", 20.0)["comfort_ba_ratio"]
+    assert 0.0 < gap < 0.035, gap
+    p = build(cfg, opts)
+    assert p.control.k_comfort[0] == pytest.approx(res.K[0] - p.control.bp_scale[1])
+    assert p.control.bp_scale[1] > 0.5 * res.K[0]      # the network carries the skyhook

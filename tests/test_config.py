@@ -143,7 +143,7 @@ def test_a_design_file_overrides_the_named_constants(tmp_path):
     ("[design]\nsafety_dtd_limit = nan\n", ["design.safety_dtd_limit", "finite"]),
     ("[design]\nadc_rail_ticks = 2.5\n", ["design.adc_rail_ticks", "integer"]),
     ("[design]\nakf_adaptive = 1\n", ["design.akf_adaptive", "true or false"]),
-    ("[design]\nbp_scale = [1, 2]\n", ["design.bp_scale", "3 positive numbers"]),
+    ("[design]\nbp_scale_ratio = [1, 2]\n", ["design.bp_scale_ratio", "3 positive numbers"]),
     ("[other]\nx = 1\n", ["other", "only [design]"]),
     ("[design\n", ["invalid TOML"]),
 ])

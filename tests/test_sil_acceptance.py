@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hil import sil
-from hil.config import default_vehicle
+from hil.config import default_vehicle, load_vehicle
 from calib.model import linear_model
 from hil.road import constant_route, gq_of, load_route
 from calib.linear import physical_limits
@@ -33,6 +33,22 @@ def test_comfort_b_road(seed):
     r = s["ratio"]
     assert r["ba"] <= 0.85 and r["sws"] <= 1.0 and r["dtd"] <= 1.02, r
     assert s["grade_accuracy"] >= 0.95
+
+
+SUV = load_vehicle(ROOT / "hil" / "vehicles" / "suv.toml")
+
+
+def test_comfort_b_road_suv():
+    """The SUV's own comfort design (calib.ecu_params.comfort_gains): the same acceptance, and
+    the mean BA ratio within 0.03 of the SUV's own limit."""
+    ratios = []
+    for seed in SEEDS:
+        rep, _ = sil.run(SUV, constant_route("B", 20.0, 60.0), "comfort", seed)
+        r = rep["segments"][0]["ratio"]
+        assert r["ba"] <= 0.85 and r["sws"] <= 1.0 and r["dtd"] <= 1.02, (seed, r)
+        ratios.append(r["ba"])
+    limit = physical_limits(linear_model(SUV.vehicle, gq_of("B"), 20.0))["comfort"].value
+    assert np.mean(ratios) - limit <= 0.03, (ratios, limit)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

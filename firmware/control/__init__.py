@@ -35,7 +35,8 @@ FORCE = {
     CTRL_NONE: lambda p, cs, x, ba, dt: 0.0,
     CTRL_PID: lambda p, cs, x, ba, dt: pid.step(cs.pid, -ba, p.pid_kp, p.pid_ki, p.pid_kd,
                                                 p.pid_leak, dt, p.force_limit),
-    CTRL_BPPID: lambda p, cs, x, ba, dt: bppid.step(p, cs.bppid, ba, dt),
+    CTRL_BPPID: lambda p, cs, x, ba, dt: (bppid.step(p, cs.bppid, ba, dt)
+                                          + lqr.force(p.k_comfort, x)),
     CTRL_LQR: lambda p, cs, x, ba, dt: lqr.force(p.k_safety, x),
     CTRL_GALQR: lambda p, cs, x, ba, dt: lqr.force(p.k_comprehensive, x),
     CTRL_SKYHOOK: lambda p, cs, x, ba, dt: skyhook.force(p, x),

@@ -79,6 +79,7 @@ class FxTables:
     regen_min_ratio: Fx       # voltage -> voltage
     k_safety: tuple           # 5 x Fx state -> force
     k_comprehensive: tuple
+    k_comfort: tuple          # under the BP-PID
     skyhook_c: Fx             # vel -> force
     skyhook_passive_c: Fx
     regen_c: Fx

@@ -23,7 +23,7 @@ FORCE = {
     CTRL_NONE: lambda T, s: 0,
     CTRL_PID: lambda T, s: pid.pid_step(T, s.pid, neg(s.ba), T.pid_kp.m, T.pid_ki.m,
                                         T.pid_kd.m)[0],
-    CTRL_BPPID: bppid.bppid_step,
+    CTRL_BPPID: lambda T, s: add(bppid.bppid_step(T, s), lqr.force(T.k_comfort, s.x)),
     CTRL_LQR: lambda T, s: lqr.force(T.k_safety, s.x),
     CTRL_GALQR: lambda T, s: lqr.force(T.k_comprehensive, s.x),
     CTRL_SKYHOOK: lambda T, s: skyhook.force(T, s.x),
