@@ -28,7 +28,7 @@ The campaign file (every key but ``routes`` optional)::
 
     [criteria]
     acceptance = true                       # the firmware issue's SIL acceptance per segment
-    max_gap = 0.03                          # a ratio at most this above the vehicle's own limit
+    max_gap = 0.03                          # each mean ratio at most this above its limit
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ import itertools
 import json
 import math
 import os
+import signal
 import socket
 import sqlite3
 import sys
@@ -267,8 +268,13 @@ def command(case: dict, db_path: str = "DB") -> str:
     parts = ["python -m hil sim", f"--route {case['route']['name']}",
              f"--mode {case['mode']}", f"--seed {case['seed']}"]
     v = case["vehicle"]
+    shipped = Path(__file__).resolve().parent / "vehicles" / f"{v['name']}.toml"
     if v["toml"]:
+        if not (shipped.is_file() and shipped.read_text() == v["toml"]):
+            return f"python -m hil campaign-case {db_path} {case_id(case)}"
         parts.append(f"--vehicle hil/vehicles/{v['name']}.toml")
+    if "toml" in case["route"]:               # a route file: its text is in the case
+        return f"python -m hil campaign-case {db_path} {case_id(case)}"
     if case["fixed_point"]:
         parts.append("--fixed-point")
     if case["duration_s"] is not None:
@@ -283,13 +289,13 @@ def command(case: dict, db_path: str = "DB") -> str:
 CASE_KEY = bytes(range(16))
 
 
-def run_case(case: dict, acceptance: bool = True, max_gap: Optional[float] = None) -> dict:
+def run_case(case: dict, acceptance: bool = True) -> dict:
     """Run one case (on a worker): the row of ``cases`` and the rows of ``segments``. A case
     that raises is a result too (verdict ``error``, the exception in ``failed``): one bad
     case does not stop a campaign."""
     t0 = time.perf_counter()
     try:
-        return _run_case(case, acceptance, max_gap, t0)
+        return _run_case(case, acceptance, t0)
     except Exception as exc:  # noqa: BLE001 - recorded with the case
         return {"case_id": case_id(case), "case": case, "calibration_sha256": "",
                 "software_version": "", "trace_sha256": "", "verdict": "error",
@@ -298,7 +304,7 @@ def run_case(case: dict, acceptance: bool = True, max_gap: Optional[float] = Non
                 "worker": f"{socket.gethostname()}:{os.getpid()}", "segments": []}
 
 
-def _run_case(case: dict, acceptance: bool, max_gap: Optional[float], t0: float) -> dict:
+def _run_case(case: dict, acceptance: bool, t0: float) -> dict:
     from hil import sil
 
     cfg = vehicle_config(case["vehicle"], case["noise"])
@@ -310,7 +316,7 @@ def _run_case(case: dict, acceptance: bool, max_gap: Optional[float], t0: float)
     failed = [c["name"] for c in report["checks"] if not c["ok"]]
     segments = []
     for i, (seg, rs) in enumerate(zip(report["segments"], route.segments)):
-        row = _judge(cfg, route, rs, seg, case["mode"], acceptance, max_gap)
+        row = _judge(cfg, route, rs, seg, case["mode"], acceptance)
         row["idx"] = i
         if not row["ok"]:
             failed.append(f"segment {i + 1} ({seg['grade']}@{seg['speed_mps']:g}): "
@@ -325,10 +331,11 @@ def _run_case(case: dict, acceptance: bool, max_gap: Optional[float], t0: float)
             "worker": f"{socket.gethostname()}:{os.getpid()}", "segments": segments}
 
 
-def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool,
-           max_gap: Optional[float]) -> dict:
-    """A segment against the acceptance of the mode it was driven in and the vehicle's own
-    limit for that mode (``calib.linear.physical_limits``: no controller can go below it)."""
+def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool) -> dict:
+    """A segment against the acceptance of the mode it was driven in, and its gap to the
+    vehicle's own limit for that mode (``calib.linear.physical_limits``: no controller can go
+    below it). The gap is judged on the mean over the seeds, in ``report``: one segment's
+    ratio scatters around the mean by more than the 0.03 a design is held to."""
     driven = GRADE_MODE.get(seg["grade"]) if mode == "auto" else mode
     row = {"grade": seg["grade"], "speed_mps": seg["speed_mps"], "mode": driven or mode,
            "scored": bool(seg.get("scored", True)), "ratio": seg.get("ratio", {}),
@@ -355,9 +362,6 @@ def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool,
                                                                                   r.get(key))
             if got > bound:
                 why.append(f"{key} {got:.3f} > {bound:g}")
-    if max_gap is not None and value - limit > max_gap:
-        why.append(f"{name} {value:.3f} is {value - limit:.3f} above its limit {limit:.3f} "
-                   f"(at most {max_gap:g})")
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
 
@@ -414,6 +418,8 @@ def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
     db = open_db(db_path)
     with db:
         db.execute("INSERT OR REPLACE INTO meta VALUES ('campaign', ?)", (campaign.name,))
+        db.execute("INSERT OR REPLACE INTO meta VALUES ('max_gap', ?)",
+                   (json.dumps(campaign.max_gap),))
     have = done_ids(db)
     todo = [c for c in campaign.cases if case_id(c) not in have]
     counts = {"run": 0, "skipped": len(campaign.cases) - len(todo), "failed": 0}
@@ -428,7 +434,7 @@ def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
     else:
         client = Client(scheduler, timeout=30)
     try:
-        futures = [client.submit(run_case, c, campaign.acceptance, campaign.max_gap,
+        futures = [client.submit(run_case, c, campaign.acceptance,
                                  key=f"case-{case_id(c)}", pure=False, retries=2)
                    for c in todo]
         for i, fut in enumerate(as_completed(futures), 1):
@@ -515,7 +521,9 @@ def report(db_path: Path) -> dict:
     """The summary of a campaign database: cases and pass rate; per criterion (each check
     and acceptance clause) its failures; the worst cases by their gap to the vehicle's own
     limit, with the command that reproduces each; per vehicle, mode and grade the mean ratio
-    with its 95 % confidence interval next to the limit."""
+    over the seeds with its 95 % confidence interval next to the limit, ``ok`` when the mean
+    is at most the campaign's ``max_gap`` above it. The verdict: every case passes and every
+    mean is ok."""
     if not Path(db_path).is_file():
         raise ConfigError(f"{db_path}: no such campaign database")
     db = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
@@ -526,10 +534,11 @@ def report(db_path: Path) -> dict:
                           "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
                           "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
                           "NULL").fetchall()
-        name = (db.execute("SELECT value FROM meta WHERE key='campaign'").fetchone()
-                or ("?",))[0]
+        meta = dict(db.execute("SELECT key, value FROM meta"))
     finally:
         db.close()
+    name = meta.get("campaign", "?")
+    max_gap = json.loads(meta.get("max_gap", "null"))
     criteria: dict[str, int] = {}
     for c in cases:
         for f in json.loads(c[5]):
@@ -548,10 +557,14 @@ def report(db_path: Path) -> dict:
         limit = sum(lim for _, lim in vals) / len(vals)
         rows.append({"vehicle": vehicle, "mode": mode, "grade": grade, "ratio": limit_name,
                      "n": len(v), "mean": mean, "ci95": [mean - half, mean + half],
-                     "limit": limit, "gap": mean - limit})
+                     "limit": limit, "gap": mean - limit,
+                     "ok": max_gap is None or mean - limit <= max_gap})
+    over = sum(not r["ok"] for r in rows)
+    if over:
+        criteria[f"max_gap (mean ratio over its limit + {max_gap:g}; groups)"] = over
     worst = sorted(segs, key=lambda s: -s[8])[:10]
     passed = sum(c[4] == "pass" for c in cases)
-    return {"campaign": name, "cases": len(cases), "passed": passed,
+    return {"campaign": name, "cases": len(cases), "passed": passed, "max_gap": max_gap,
             "pass_rate": passed / len(cases) if cases else float("nan"),
             "wall_s": sum(c[8] for c in cases),
             "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
@@ -560,7 +573,7 @@ def report(db_path: Path) -> dict:
                        "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
                        "command": s[10]} for s in worst],
-            "verdict": "pass" if cases and passed == len(cases) else "fail"}
+            "verdict": "pass" if cases and passed == len(cases) and not over else "fail"}
 
 
 def _t95(dof: int) -> float:
@@ -618,14 +631,15 @@ def render(rep: dict) -> None:
             t.add_row(k, str(v))
         con.print(t)
     t = Table(title="ratios per vehicle, mode and grade (mean, 95 % CI) against the limit")
-    for col in ("vehicle", "mode", "grade", "ratio", "n", "mean", "95 % CI", "limit", "gap"):
+    for col in ("vehicle", "mode", "grade", "ratio", "n", "mean", "95 % CI", "limit", "gap",
+                "ok"):
         t.add_column(col, justify="right" if col not in ("vehicle", "mode", "ratio") else
                      "left")
     for r in rep["ratios"]:
         lo, hi = r["ci95"]
         t.add_row(r["vehicle"], r["mode"], r["grade"], r["ratio"], str(r["n"]),
                   f"{r['mean']:.3f}", "-" if math.isnan(lo) else f"{lo:.3f}–{hi:.3f}",
-                  f"{r['limit']:.3f}", f"{r['gap']:+.3f}")
+                  f"{r['limit']:.3f}", f"{r['gap']:+.3f}", "yes" if r["ok"] else "NO")
     con.print(t)
     t = Table(title="worst cases (largest gap to the limit)")
     for col in ("vehicle", "mode", "segment", "value", "limit", "gap", "reproduce"):
@@ -654,6 +668,7 @@ def main(args) -> int:
     print(f"campaign {camp.name}: {len(camp.cases)} cases, database {db_path}",
           file=sys.stderr, flush=True)
     bar = _progress(not args.json)
+    signal.signal(signal.SIGTERM, _interrupt)   # (as Ctrl-C: a background job ignores SIGINT)
     try:
         with bar as progress:
             counts = run(camp, db_path, sched, args.workers, progress)
@@ -673,6 +688,10 @@ def main(args) -> int:
         render(rep)
         print(f"report: {out / 'report.json'}, {out / 'ratios.png'}")
     return 0 if rep["verdict"] == "pass" else 1
+
+
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt
 
 
 def report_main(args) -> int:

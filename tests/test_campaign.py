@@ -166,8 +166,19 @@ def test_the_report_names_the_worst_cases_and_the_limits(tmp_path):
     assert w["gap"] == max(x["gap"] for x in rep["worst"]) and w["command"].startswith(
         "python -m hil")
     assert (tmp_path / "r" / "ratios.png").stat().st_size > 10_000
-    again = hil("campaign-report", str(tmp_path / "r" / "campaign.sqlite"), "--json")
+    db = tmp_path / "r" / "campaign.sqlite"
+    again = hil("campaign-report", str(db), "--json")
     assert json.loads(again.stdout)["ratios"] == rep["ratios"]
+    # max_gap judges each mean over the seeds (not each segment): none here, so all ok
+    assert rep["max_gap"] is None and all(r["ok"] for r in rep["ratios"])
+    con = sqlite3.connect(db)
+    with con:
+        con.execute("INSERT OR REPLACE INTO meta VALUES ('max_gap', '0.0')")
+    con.close()
+    strict = cp.report(db)
+    assert [r["ok"] for r in strict["ratios"]] == [r["gap"] <= 0.0 for r in rep["ratios"]]
+    assert strict["verdict"] == ("fail" if not all(r["ok"] for r in strict["ratios"])
+                                 else rep["verdict"])
 
 
 def test_the_shipped_vehicle_family_campaign_loads():
@@ -177,3 +188,22 @@ def test_the_shipped_vehicle_family_campaign_loads():
     assert len(camp.cases) == 220 == len({cp.case_id(c) for c in camp.cases})
     assert camp.max_gap == 0.03 and camp.acceptance
     assert {c["vehicle"]["name"] for c in camp.cases} == {"default", "suv"}
+
+
+def test_the_reproducing_command_of_a_route_file_or_an_own_vehicle_is_campaign_case(tmp_path):
+    """``hil sim --route NAME`` knows only the shipped routes, ``--vehicle`` the file it is
+    given: a case with a route file or a vehicle file of its own reproduces from the database."""
+    route = tmp_path / "r.toml"
+    route.write_text((ROOT / "campaigns" / "acceptance_route.toml").read_text())
+    car = tmp_path / "car.toml"
+    car.write_text((ROOT / "hil" / "vehicles" / "table3.toml").read_text().replace(
+        "sprung_mass_kg = 320.0", "sprung_mass_kg = 300.0"))
+    path = tmp_path / "c.toml"
+    path.write_text(f'[campaign]\nroutes = ["r.toml", "city"]\n[[vehicle]]\n[[vehicle]]\n'
+                    f'file = "car.toml"\n[[vehicle]]\nfile = "{ROOT}/hil/vehicles/suv.toml"\n')
+    cmds = {(c["route"]["name"], c["vehicle"]["name"]): cp.command(c) for c in cp.load(path).cases}
+    assert cmds[("city", "default")].startswith("python -m hil sim --route city")
+    assert cmds[("city", "suv")].startswith("python -m hil sim") and \
+        "--vehicle hil/vehicles/suv.toml" in cmds[("city", "suv")]
+    for key in (("r", "default"), ("r", "suv"), ("city", "car"), ("r", "car")):
+        assert cmds[key].startswith("python -m hil campaign-case DB "), key
