@@ -11,6 +11,7 @@ Eq. (44) with a design margin (each ratio <= its bound), violations penalised.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -18,6 +19,9 @@ import random
 
 import numpy as np
 from deap import algorithms, base, creator, tools
+from deap.tools import crossover as deap_crossover
+from deap.tools import mutation as deap_mutation
+from deap.tools import selection as deap_selection
 
 from calib.iso8608 import GRADE_GQ_M3
 from calib.linear import RelativeFamily
@@ -49,7 +53,31 @@ def tune(cfg, seed: int = 0, bound=None, population: int = POPULATION,
     model = linear_model(cfg.vehicle, GRADE_GQ_M3["D"], NOMINAL_SPEED_MPS)
     fam = RelativeFamily(model)
     rng = random.Random(seed)
-    random.seed(seed)  # DEAP's operators draw from the global generator
+    with _own_random(random.Random(seed)):
+        return _tune(cfg, bound, model, fam, rng, seed, population, generations)
+
+
+# the modules whose operators draw from the module-level ``random`` generator
+_DEAP_MODULES = (algorithms, deap_crossover, deap_mutation, deap_selection)
+
+
+@contextlib.contextmanager
+def _own_random(gen: random.Random):
+    """DEAP's operators draw from the global ``random`` generator, which other threads of the
+    process share (a Dask worker's event loop draws from it while the task runs: the same
+    case then got other gains, and another trace, on each run). Inside, they draw from
+    ``gen`` (seeded as ``random.seed(seed)`` seeded the global one: the same draws, alone)."""
+    saved = [m.random for m in _DEAP_MODULES]
+    for m in _DEAP_MODULES:
+        m.random = gen
+    try:
+        yield
+    finally:
+        for m, r in zip(_DEAP_MODULES, saved):
+            m.random = r
+
+
+def _tune(cfg, bound, model, fam, rng, seed, population, generations) -> dict:
 
     def score(ind) -> tuple[float]:
         try:

@@ -186,7 +186,7 @@ def test_the_shipped_vehicle_family_campaign_loads():
     seeds: 22 vehicles x 10 = 220 distinct cases, every variant a plausible vehicle."""
     camp = cp.load(ROOT / "campaigns" / "vehicle_family.toml")
     assert len(camp.cases) == 220 == len({cp.case_id(c) for c in camp.cases})
-    assert camp.max_gap == 0.03 and camp.acceptance
+    assert camp.max_gap == 0.03 and camp.acceptance == "relative"
     assert {c["vehicle"]["name"] for c in camp.cases} == {"default", "suv"}
 
 
@@ -207,3 +207,31 @@ def test_the_reproducing_command_of_a_route_file_or_an_own_vehicle_is_campaign_c
         "--vehicle hil/vehicles/suv.toml" in cmds[("city", "suv")]
     for key in (("r", "default"), ("r", "suv"), ("city", "car"), ("r", "car")):
         assert cmds[key].startswith("python -m hil campaign-case DB "), key
+
+
+def test_relative_acceptance_moves_the_ba_and_dtd_bounds_by_the_vehicles_own_limit(tmp_path):
+    """A vehicle whose own comfort limit is above 0.85 cannot pass BA <= 0.85 with any
+    controller: "relative" keeps the default car's margin above each vehicle's limit."""
+    path = tmp_path / "c.toml"
+    path.write_text(f'[campaign]\nroutes = ["{ROOT}/campaigns/acceptance_route.toml"]\n'
+                    f'[criteria]\nacceptance = "relative"\n[[vehicle]]\n[[vehicle]]\n'
+                    f'file = "{ROOT}/hil/vehicles/suv.toml"\ntire_stiffness_n_per_m = [1.3]\n')
+    camp = cp.load(path)
+    assert camp.acceptance == "relative"
+    seg = {"grade": "B", "speed_mps": 20.0, "scored": True,
+           "ratio": {"ba": 0.86, "sws": 0.9, "dtd": 0.99}}
+    judged = {}
+    for case in camp.cases:
+        cfg, route = cp.vehicle_config(case["vehicle"], 1.0), cp.route_of(case["route"])
+        judged[case["vehicle"]["name"]] = {
+            acc: cp._judge(cfg, route, route.segments[0], seg, "auto", acc)
+            for acc in (True, "relative")}
+    default, suv = judged["default"], judged["suv"]
+    assert not default[True]["ok"] and not default["relative"]["ok"]   # the same bound
+    assert default[True]["why"] == default["relative"]["why"] == "ba 0.860 > 0.850"
+    assert suv[True]["limit_value"] > 0.85                   # beyond any controller
+    assert not suv[True]["ok"] and suv["relative"]["ok"]
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[campaign]\nroutes = ["city"]\n[criteria]\nacceptance = "yes"\n')
+    with pytest.raises(ConfigError, match="criteria.acceptance"):
+        cp.load(bad)
