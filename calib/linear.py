@@ -265,10 +265,7 @@ def safety_design(model: LinearModel, bound: float = 1.0) -> LimitResult:
     on the relative model (blind to the common mode) by the Lagrange dual, ratios computed
     exactly on the full model. (The comprehensive mode's GA-LQR comes from
     ``tools.tune_ga_lqr`` over the same family.)"""
-    fam = RelativeFamily(model)
-    _, w, _, _ = _dual_max(fam.rel, 2, (bound, bound))
-    K5, ratios = fam.evaluate(w)
-    return LimitResult(float(ratios[2]), w, K5, ratios)
+    return _relative_design(model, 2, (bound, bound))
 
 
 def comfort_design(model: LinearModel, bounds: tuple[float, float] = (1.0, 1.0)) -> LimitResult:
@@ -276,7 +273,14 @@ def comfort_design(model: LinearModel, bounds: tuple[float, float] = (1.0, 1.0))
     passive, on the relative model (blind to the common mode) by the Lagrange dual, ratios
     computed exactly on the full model. Its gain shapes the suspension's stiffness and
     feeds back the tyre force; its body-velocity part is the skyhook the BP-PID adds."""
+    return _relative_design(model, 0, bounds)
+
+
+def _relative_design(model: LinearModel, objective: int, bounds: tuple[float, float]
+                     ) -> LimitResult:
+    """min the ``objective`` output with the other two <= ``bounds`` x passive, designed on
+    the relative model by the Lagrange dual, ratios exact on the full model."""
     fam = RelativeFamily(model)
-    _, w, _, _ = _dual_max(fam.rel, 0, bounds)
+    _, w, _, _ = _dual_max(fam.rel, objective, bounds)
     K5, ratios = fam.evaluate(w)
-    return LimitResult(float(ratios[0]), w, K5, ratios)
+    return LimitResult(float(ratios[objective]), w, K5, ratios)

@@ -45,6 +45,7 @@ import os
 import signal
 import socket
 import sqlite3
+import subprocess
 import sys
 import time
 import tomllib
@@ -354,23 +355,22 @@ def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict
            "metrics": seg}
     if not row["scored"] or driven not in ("comfort", "safety", "comprehensive"):
         return row
-    from calib.linear import physical_limits
-    from calib.model import linear_model
-
-    limits = physical_limits(linear_model(cfg.vehicle, rs.gq_m3, rs.speed_mps,
-                                          route.road.convention, route.road.cutoff_n_per_m))
+    limits = _limits(cfg.vehicle, rs, route)
     r = seg["ratio"]
     name, value = {"comfort": ("comfort_ba", r["ba"]), "safety": ("safety_dtd", r["dtd"]),
                    "comprehensive": ("eq43_sum", sum(r.values()))}[driven]
     limit = limits[{"comfort": "comfort", "safety": "safety",
-                    "comprehensive": "eq43"}[driven]].value
+                    "comprehensive": "eq43"}[driven]]
     row.update(limit_name=name, limit_value=limit, gap=value - limit)
     why = []
     if acceptance:
         acc = dict(ACCEPTANCE[driven])
         if acceptance == "relative" and driven in RELATIVE_KEY:
             # the same margin above this vehicle's limit as above the default car's
-            acc[RELATIVE_KEY[driven]] += limit - _default_limit(driven, rs, route)
+            from hil.config import default_vehicle
+
+            acc[RELATIVE_KEY[driven]] += limit - _limits(default_vehicle().vehicle, rs,
+                                                         route)[driven]
         for key, bound in acc.items():
             got = {"max": max(r.values()), "sum_eq43": sum(r.values()) / limit}.get(key,
                                                                                   r.get(key))
@@ -380,20 +380,19 @@ def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict
     return row
 
 
+def _limits(vehicle, rs, route) -> dict:
+    """The limits (``calib.linear.physical_limits``) of a vehicle on a route segment's road."""
+    return _limit_values(vehicle, rs.gq_m3, rs.speed_mps, route.road.convention,
+                         route.road.cutoff_n_per_m)
+
+
 @functools.lru_cache(maxsize=64)
-def _default_limits(gq: float, speed: float, convention: str, cutoff: float) -> dict:
+def _limit_values(vehicle, gq: float, speed: float, convention: str, cutoff: float) -> dict:
     from calib.linear import physical_limits
     from calib.model import linear_model
-    from hil.config import default_vehicle
 
-    res = physical_limits(linear_model(default_vehicle().vehicle, gq, speed, convention,
-                                       cutoff))
-    return {"comfort": res["comfort"].value, "safety": res["safety"].value}
-
-
-def _default_limit(mode: str, rs, route) -> float:
-    return _default_limits(rs.gq_m3, rs.speed_mps, route.road.convention,
-                           route.road.cutoff_n_per_m)[mode]
+    res = physical_limits(linear_model(vehicle, gq, speed, convention, cutoff))
+    return {name: r.value for name, r in res.items()}
 
 
 # ------------------------------------------------------------------ the database
@@ -503,8 +502,6 @@ class SeparateCluster:
         self.url = f"tcp://127.0.0.1:{self.port}"
 
     def _start(self, argv: list[str], name: str):
-        import subprocess
-
         dask = str(Path(sys.executable).parent / "dask")
         out = (open(self.log_dir / f"{name}.log", "w") if self.log_dir is not None
                else subprocess.DEVNULL)
@@ -532,8 +529,6 @@ class SeparateCluster:
         self.stop()
 
     def stop(self) -> None:
-        import subprocess
-
         for group in (self.workers, [self.scheduler] if self.scheduler else []):
             for p in group:
                 if p.poll() is None:
