@@ -37,6 +37,13 @@ def write_outputs(out: Path, report: dict, trace, cfg=None, route=None) -> list[
     return [path, md, *figs]
 
 
+def _energy_line(energy: dict) -> str:
+    if "stored_j" not in energy:     # a partial report whose plant wrote no record
+        return "- energy: not recorded"
+    return (f"- energy: harvested into storage {energy['stored_j']:.1f} J, drawn from the "
+            f"supply {energy['supply_drawn_j']:.1f} J ({ENERGY_NOTE})")
+
+
 def markdown(report: dict, figures: list[str]) -> str:
     bench = report.get("bench", {"harness": "sil"})
     lines = [f"# {bench.get('harness', 'sil').upper()} run: route `{report['route']}`, "
@@ -58,8 +65,7 @@ def markdown(report: dict, figures: list[str]) -> str:
               f"- grade accuracy {report['grade_accuracy']:.3f}; {report['mode_switches']} mode "
               f"switches for {report['grade_changes']} grade changes",
               f"- driver: {report['driver']['policy']}, requests {report['driver']['requests']}",
-              f"- energy: harvested into storage {report['energy']['stored_j']:.1f} J, drawn "
-              f"from the supply {report['energy']['supply_drawn_j']:.1f} J ({ENERGY_NOTE})", ""]
+              _energy_line(report["energy"]), ""]
     if "realtime" in bench:
         rt = bench["realtime"]
         lines += [f"- realtime: missed deadlines {rt['missed_deadlines']} "

@@ -121,3 +121,22 @@ def test_a_fail_safe_episode_is_not_a_mode_switch_but_chatter_is():
     assert mode_switches(mode, faults) == 1
     faults[2:4] = safety.FAULT_RATE                     # not safety-relevant: a real switch
     assert mode_switches(mode, faults) == 3
+
+
+def test_a_run_whose_nodes_wrote_nothing_still_leaves_a_failing_report(tmp_path, capsys):
+    """A bench that failed before any node wrote its record (the hub never opened, a node
+    died at start) leaves report.json and report.md marked incomplete, verdict fail."""
+    import argparse
+
+    from hil.supervisor import _partial_report
+
+    args = argparse.Namespace(mode="comfort", controller=None, seed=1, driver="accept",
+                              pace="lockstep", junit=str(tmp_path / "j.xml"), json=False)
+    _partial_report(tmp_path, default_vehicle(), load_route(B20), args, 4000, 0.001, None,
+                    "the CAN hub did not open its port")
+    assert "could not write" not in capsys.readouterr().err
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["verdict"] == "fail" and rep["incomplete"] == "the CAN hub did not open its port"
+    md = (tmp_path / "report.md").read_text()
+    assert "INCOMPLETE" in md and "energy: not recorded" in md
+    assert junitparser.JUnitXml.fromfile(args.junit).failures > 0
