@@ -285,6 +285,11 @@ def fast_remote_client() -> None:
     ws.WebSocket._hil_fast = True
 
 
+# the hub's process alive but not yet listening: a Python start-up, which took over 10 s in
+# User-mode Linux on a loaded CI host; a hub that exits is reported at once
+HUB_START_S = 60.0
+
+
 class Hub:
     """The bench's CAN hub (``hil.hub``: a single-threaded relay speaking python-can-remote's
     protocol), bound to 127.0.0.1, as a child process that only its owner stops (by PID)."""
@@ -304,7 +309,7 @@ class Hub:
     def url(self) -> str:
         return f"ws://{LOOPBACK}:{self.port}/"
 
-    def start(self, timeout_s: float = 10.0) -> "Hub":
+    def start(self, timeout_s: float = HUB_START_S) -> "Hub":
         env = {k: v for k, v in os.environ.items() if k != SECRET_ENV}
         if self.secret:
             env[SECRET_ENV] = self.secret

@@ -22,6 +22,7 @@ from tests.procutil import cmdline as _cmdline
 
 ROOT = Path(__file__).resolve().parents[1]
 ROUTES = Path(__file__).resolve().parent / "routes"
+START_CAP_S = 600
 pytestmark = pytest.mark.hil
 
 
@@ -153,15 +154,18 @@ def _start_and_wait_for_nodes(out: Path, *extra):
                             *extra],
                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                            preexec_fn=_default_sigint)
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
+    # a bench in User-mode Linux on a slow host takes minutes to start (CI saw over 120 s);
+    # the run's own start-up timeouts end a bench that cannot start, this cap only a hang
+    deadline = time.monotonic() + START_CAP_S
+    while time.monotonic() < deadline and sup.poll() is None:
         kids = {pid: _cmdline(pid) for pid in _children(sup.pid)}
         if any(" plant " in c for c in kids.values()) and (out / "bus.log").exists() \
                 and (out / "bus.log").stat().st_size > 100_000:
             return sup, kids
         time.sleep(0.2)
     sup.kill()
-    raise AssertionError("the bench did not start")
+    _, err = sup.communicate()
+    raise AssertionError(f"the bench did not start: {err[-2000:]}")
 
 
 @pytest.mark.vcan        # (in make vcan-test: the same on vcan0)
