@@ -6,6 +6,7 @@ firmware only receives numbers.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -200,6 +201,34 @@ def comfort_gains(cfg: VehicleConfig, opts: DesignOptions, model) -> tuple[np.nd
     return k, scale
 
 
+@functools.lru_cache(maxsize=32)
+def _feedback_designs(cfg: VehicleConfig, opts: DesignOptions
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(k_safety, k_comfort, bp_scale) for this vehicle and these options, read-only and kept
+    for the process: the designs are pure functions of their (frozen, hashable) inputs and
+    take about 2 s, which a process building the same calibration again (a campaign worker,
+    a test module, the fault campaign) would otherwise repeat."""
+    model = linear_model(cfg.vehicle, GRADE_GQ_M3["C"], NOMINAL_SPEED_MPS)
+    k_safety = safety_design(model, opts.safety_bound).K
+    k_comfort, bp_scale = comfort_gains(cfg, opts, model)
+    return _read_only(k_safety), _read_only(k_comfort), _read_only(bp_scale)
+
+
+@functools.lru_cache(maxsize=32)
+def _tuned_gain(cfg: VehicleConfig, bound: tuple) -> np.ndarray:
+    """The GA-LQR's gain tuned now (default seed), read-only and kept for the process."""
+    result = tune(cfg, 0, bound)
+    if not result["feasible"]:
+        raise ConfigError(f"{cfg.source}: GA-LQR found no gains meeting Eq. (44) with margin")
+    return _read_only(result["K"])
+
+
+def _read_only(a) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
 def default_gains_path(cfg: VehicleConfig) -> Path:
     return GAINS_DIR / f"galqr_{vehicle_digest(cfg)[:12]}.json"
 
@@ -239,10 +268,7 @@ def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path
     shipped = default_gains_path(cfg)
     if shipped.exists():
         return load_gains(shipped, cfg)
-    result = tune(cfg, 0, opts.comprehensive_bound)
-    if not result["feasible"]:
-        raise ConfigError(f"{cfg.source}: GA-LQR found no gains meeting Eq. (44) with margin")
-    return np.array(result["K"])
+    return _tuned_gain(cfg, tuple(opts.comprehensive_bound))
 
 
 def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
@@ -273,10 +299,8 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
                            ap.screw_efficiency, ap.winding_resistance_ohm,
                            ap.winding_inductance_h, ap.current_limit_a, ap.bus_voltage_v,
                            ap.storage_voltage_v)
-    model = linear_model(vp, GRADE_GQ_M3["C"], NOMINAL_SPEED_MPS)
-    k_safety = safety_design(model, opts.safety_bound).K
+    k_safety, k_comfort, bp_scale = _feedback_designs(cfg, opts)
     k_comp = comprehensive_gain(cfg, opts, gains_file)
-    k_comfort, bp_scale = comfort_gains(cfg, opts, model)
     rng = np.random.default_rng(opts.bp_seed)
     force_limit = opts.force_limit_margin * ap.current_limit_a * ap.force_constant_n_per_a * ap.screw_efficiency
     control = fp.ControlParams(

@@ -155,3 +155,25 @@ def test_the_comfort_design_follows_the_vehicle(vehicle):
     p = build(cfg, opts)
     assert p.control.k_comfort[0] == pytest.approx(res.K[0] - p.control.bp_scale[1])
     assert p.control.bp_scale[1] > 0.5 * res.K[0]      # the network carries the skyhook
+
+
+def test_a_process_designs_each_vehicle_once_and_nobody_changes_the_design():
+    """calib.ecu_params keeps the feedback designs per process: a second build of the same
+    vehicle and options gives equal gains without designing again, the kept arrays are
+    read-only, and other options design anew."""
+    import dataclasses
+
+    from calib import ecu_params
+    from calib.options import DesignOptions
+
+    ecu_params._feedback_designs.cache_clear()
+    first = ecu_params.build(SUV, DesignOptions())
+    again = ecu_params.build(SUV, DesignOptions())
+    assert ecu_params._feedback_designs.cache_info().hits == 1
+    for a, b in ((first.control.k_comfort, again.control.k_comfort),
+                 (first.control.k_safety, again.control.k_safety)):
+        assert np.array_equal(a, b)
+        with pytest.raises(ValueError):
+            a[0] = 0.0
+    other = ecu_params.build(SUV, dataclasses.replace(DesignOptions(), safety_bound=0.9))
+    assert not np.array_equal(other.control.k_safety, first.control.k_safety)
