@@ -76,7 +76,7 @@ vcan-shell: $(STAMP) vcan-setup
 
 # the tests that make sense on vcan0 (marker vcan), in UML
 vcan-test: $(STAMP) vcan-setup
-	$(PY) -m hil vcan --timeout 2400 -- $(PY) -m pytest -q -p no:cacheprovider -m vcan
+	$(PY) -m hil vcan --timeout 3000 -- $(PY) -m pytest -q -p no:cacheprovider -m vcan
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
