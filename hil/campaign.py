@@ -67,6 +67,8 @@ ACCEPTANCE = {"comfort": {"ba": 0.85, "sws": 1.0, "dtd": 1.02},
 RELATIVE_KEY = {"comfort": "ba", "safety": "dtd"}
 # the mode the ECU drives on each grade in auto (firmware.modes.GRADE_TO_MODE)
 GRADE_MODE = {"A": "regen", "B": "comfort", "C": "safety", "D": "comprehensive"}
+MIXED = "mixed"            # a segment driven in more than one mode (campaign._driven)
+DRIVEN_SHARE = 0.95        # ... for less than this share of its window in its main mode
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -348,8 +350,8 @@ def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict
     vehicle's own limit for that mode (``calib.linear.physical_limits``: no controller can go
     below it). The gap is judged on the mean over the seeds, in ``report``: one segment's
     ratio scatters around the mean by more than the 0.03 a design is held to."""
-    driven = GRADE_MODE.get(seg["grade"]) if mode == "auto" else mode
-    row = {"grade": seg["grade"], "speed_mps": seg["speed_mps"], "mode": driven or mode,
+    driven = _driven(seg, mode)
+    row = {"grade": seg["grade"], "speed_mps": seg["speed_mps"], "mode": driven,
            "scored": bool(seg.get("scored", True)), "ratio": seg.get("ratio", {}),
            "limit_name": None, "limit_value": None, "gap": None, "ok": True, "why": "",
            "metrics": seg}
@@ -378,6 +380,21 @@ def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict
                 why.append(f"{key} {got:.3f} > {bound:.3f}")
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
+
+
+def _driven(seg: dict, mode: str) -> str:
+    """The mode a segment was driven in: the active mode of at least ``DRIVEN_SHARE`` of its
+    scored window, else ``MIXED``: the road-holding override took over for a longer part of
+    it (safety first, ``road_holding_share``), or the driver's mode changed inside it. A
+    mixed window's ratios belong to no mode, so no mode's acceptance or limit judges them;
+    the report counts them. (A few per cent in another mode are judged with the window's
+    mode: the override's safety mode has a higher BA ratio and Eq. (43) sum than comfort and
+    comprehensive, so that judgement errs on the strict side.)"""
+    modes = seg.get("modes")
+    if not modes:                     # (not scored)
+        return GRADE_MODE.get(seg["grade"], mode) if mode == "auto" else mode
+    top, share = max(modes.items(), key=lambda kv: kv[1])
+    return top if share >= DRIVEN_SHARE else MIXED
 
 
 def _limits(vehicle, rs, route) -> dict:
@@ -547,8 +564,9 @@ def report(db_path: Path) -> dict:
     and acceptance clause) its failures; the worst cases by their gap to the vehicle's own
     limit, with the command that reproduces each; per vehicle, mode and grade the mean ratio
     over the seeds with its 95 % confidence interval next to the limit, ``ok`` when the mean
-    is at most the campaign's ``max_gap`` above it. The verdict: every case passes and every
-    mean is ok."""
+    is at most the campaign's ``max_gap`` above it; the segments driven in more than one
+    mode (``MIXED``), with their share under the road-holding override. The verdict: every
+    case passes and every mean is ok."""
     if not Path(db_path).is_file():
         raise ConfigError(f"{db_path}: no such campaign database")
     db = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
@@ -559,6 +577,9 @@ def report(db_path: Path) -> dict:
                           "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
                           "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
                           "NULL").fetchall()
+        mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, s.metrics FROM "
+                           "segments s JOIN cases c USING (case_id) WHERE s.mode = ?",
+                           (MIXED,)).fetchall()
         meta = dict(db.execute("SELECT key, value FROM meta"))
     finally:
         db.close()
@@ -587,6 +608,10 @@ def report(db_path: Path) -> dict:
     over = sum(not r["ok"] for r in rows)
     if over:
         criteria[f"max_gap (mean ratio over its limit + {max_gap:g}; groups)"] = over
+    held: dict[tuple, list] = {}
+    for m in mixed:
+        held.setdefault((_label({"name": m[0], "factors": json.loads(m[1])}),
+                         f"{m[2]}@{m[3]:g}"), []).append(json.loads(m[4]))
     worst = sorted(segs, key=lambda s: -s[8])[:10]
     passed = sum(c[4] == "pass" for c in cases)
     return {"campaign": name, "cases": len(cases), "passed": passed, "max_gap": max_gap,
@@ -594,6 +619,9 @@ def report(db_path: Path) -> dict:
             "wall_s": sum(c[8] for c in cases),
             "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
             "ratios": rows,
+            "mixed": [{"vehicle": v, "segment": seg, "n": len(ms),
+                       "road_holding_share": sum(m.get("road_holding_share", 0.0) for m in ms)
+                       / len(ms)} for (v, seg), ms in sorted(held.items())],
             "worst": [{"case_id": s[0], "vehicle": s[1], "factors": json.loads(s[2]),
                        "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
@@ -666,6 +694,15 @@ def render(rep: dict) -> None:
                   f"{r['mean']:.3f}", "-" if math.isnan(lo) else f"{lo:.3f}–{hi:.3f}",
                   f"{r['limit']:.3f}", f"{r['gap']:+.3f}", "yes" if r["ok"] else "NO")
     con.print(t)
+    if rep["mixed"]:
+        t = Table(title="segments driven in more than one mode (judged by no mode's "
+                        "acceptance or limit)")
+        for col in ("vehicle", "segment", "segments", "under the road-holding override"):
+            t.add_column(col)
+        for m in rep["mixed"]:
+            t.add_row(m["vehicle"], m["segment"], str(m["n"]),
+                      f"{100 * m['road_holding_share']:.0f} % of their time")
+        con.print(t)
     t = Table(title="worst cases (largest gap to the limit)")
     for col in ("vehicle", "mode", "segment", "value", "limit", "gap", "reproduce"):
         t.add_column(col)

@@ -37,6 +37,12 @@ def write_outputs(out: Path, report: dict, trace, cfg=None, route=None) -> list[
     return [path, md, *figs]
 
 
+def road_holding_note(report: dict) -> str:
+    """", the road-holding override N times" when it took over (nothing when it did not)."""
+    n = report.get("road_holding_entries", 0)
+    return f", the road-holding override {n} time{'s' if n != 1 else ''}" if n else ""
+
+
 def _energy_line(energy: dict) -> str:
     if "stored_j" not in energy:     # a partial report whose plant wrote no record
         return "- energy: not recorded"
@@ -63,7 +69,8 @@ def markdown(report: dict, figures: list[str]) -> str:
                  f"{bench.get('pace')}, bus {bench.get('bus')}" if "wall_s" in bench else ""),
               f"- trace_sha256: `{report['trace_sha256']}`",
               f"- grade accuracy {report['grade_accuracy']:.3f}; {report['mode_switches']} mode "
-              f"switches for {report['grade_changes']} grade changes",
+              f"switches for {report['grade_changes']} grade changes"
+              f"{road_holding_note(report)}",
               f"- driver: {report['driver']['policy']}, requests {report['driver']['requests']}",
               _energy_line(report["energy"]), ""]
     if "realtime" in bench:

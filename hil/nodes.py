@@ -76,7 +76,7 @@ HASHED = (
 _HASHED = struct.Struct("<" + "".join(code for _, code in HASHED))
 # the ECU's per-tick trace columns (int64 rows of EcuNode.rows)
 ECU_TRACE = ("road_est_um", "dtd_est_um", "force_cmd_n", "grade", "active_mode",
-             "recommended_mode", "faults", "enable")
+             "recommended_mode", "faults", "enable", "reason")
 
 
 def period_ticks(codec: Codec, name: str, dt_s: float) -> int:
@@ -551,7 +551,8 @@ class EcuNode:
             out.road_est_um, out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
             out.dtd_rms_um, 0))
         self.rows.extend((out.road_est_um, out.dtd_est_um, out.force_cmd_n, out.grade,
-                          out.active_mode, out.recommended_mode, out.faults, out.enable))
+                          out.active_mode, out.recommended_mode, out.faults, out.enable,
+                          out.reason))
 
     def summary(self) -> dict:
         self.record()
@@ -570,7 +571,8 @@ class EcuNode:
         return {"road_est": c[0] * 1e-6, "dtd_est": c[1] * 1e-6,
                 "force_cmd": c[2].astype(float), "grade_est": c[3].astype(np.int16),
                 "mode": c[4].astype(np.int8), "recommended": c[5].astype(np.int8),
-                "faults": c[6].astype(np.int32), "enable": c[7].astype(bool)}
+                "faults": c[6].astype(np.int32), "enable": c[7].astype(bool),
+                "reason": c[8].astype(np.int8)}
 
 
 def _div_half_away(a: int, b: int) -> int:

@@ -16,6 +16,7 @@ import numpy as np
 
 from firmware import params as fp
 from firmware import safety
+from firmware.modes import REASON_ROAD_HOLDING
 from hil import secoc, verdict
 from hil.codec import Codec
 from hil.config import CONTROLLERS, RUN_MODES as MODES, ConfigError, VehicleConfig
@@ -24,6 +25,8 @@ from calib.options import DesignOptions
 from hil.metrics import rms
 from hil.nodes import AppNode, EcuNode, PlantNode, run_in_process
 from hil.road import GRADES, Route
+
+RUN_MODE_NAMES = {i: name for name, i in MODES.items()}     # 1: "regen", as hil sim says it
 
 SETTLE_S = 3.0
 REACTION_S = 1.0
@@ -129,11 +132,28 @@ def fault_ticks(trace: SilTrace) -> int:
     return int(np.count_nonzero(trace.arrays["faults"]))
 
 
-def mode_switches(mode: np.ndarray, faults: np.ndarray) -> int:
+def mode_switches(mode: np.ndarray, faults: np.ndarray, reason: np.ndarray) -> int:
     """The mode logic's switches: changes of the active mode outside fail-safe ticks (a
-    fail-safe opens the bridge whatever the mode; the fail-safe checks judge those ticks)."""
-    kept = mode[(faults.astype(np.int64) & safety.SAFETY_RELEVANT) == 0]
+    fail-safe opens the bridge whatever the mode; the fail-safe checks judge those ticks) and
+    outside the road-holding override (safety first, whatever the mode: at least
+    ``safety_hold_s`` each time, counted by ``road_holding_entries``). What is left is the
+    mode the driver accepted or chose, whose switches hysteresis and dwell must keep few."""
+    kept = mode[((faults.astype(np.int64) & safety.SAFETY_RELEVANT) == 0)
+                & (reason != REASON_ROAD_HOLDING)]
     return int(np.count_nonzero(kept[1:] != kept[:-1]))
+
+
+def road_holding_entries(reason: np.ndarray) -> int:
+    """How often the road-holding override took over (ticks where it starts)."""
+    on = reason == REASON_ROAD_HOLDING
+    return int(np.count_nonzero(on[1:] & ~on[:-1]) + bool(len(on) and on[0]))
+
+
+def _mode_shares(mode: np.ndarray) -> dict[str, float]:
+    """The share of ticks in each active mode, by its run-mode name, the largest first."""
+    values, counts = np.unique(mode, return_counts=True)
+    order = np.argsort(-counts, kind="stable")
+    return {RUN_MODE_NAMES[int(values[i])]: float(counts[i] / len(mode)) for i in order}
 
 
 def merge_traces(dt: float, plant: dict, ecu_cols: dict) -> SilTrace:
@@ -174,7 +194,7 @@ def _unscored(seg, driven_s: float) -> dict:
             "active": dict(blank), "passive": dict(blank),
             "ratio": {"ba": nan, "sws": nan, "dtd": nan}, "grade_accuracy": nan,
             "harvested_j": nan, "consumed_j": nan, "harvested_w": nan, "road_power_w": nan,
-            "road_estimate_rmse_m": nan}
+            "road_estimate_rmse_m": nan, "modes": {}, "road_holding_share": nan}
 
 
 def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hits) -> dict:
@@ -213,8 +233,10 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
             "harvested_j": harvested, "consumed_j": consumed,
             "harvested_w": harvested / t, "road_power_w": road_power,
             "road_estimate_rmse_m": rms(a["road_est"][sel] - a["zf"][sel]),
+            "modes": _mode_shares(a["mode"][sel]),
+            "road_holding_share": float(np.mean(a["reason"][sel] == REASON_ROAD_HOLDING)),
         })
-    switches = mode_switches(a["mode"], a["faults"])
+    switches = mode_switches(a["mode"], a["faults"], a["reason"])
     grades_seq = [s.grade for s in route.segments]
     grade_changes = sum(1 for x, y in zip(grades_seq, grades_seq[1:]) if min(3, GRADES.index(x)) != min(3, GRADES.index(y)))
     return {
@@ -222,7 +244,8 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
         "vehicle": cfg.source, "duration_s": len(trace.segment) * dt,
         "segments": segments,
         "grade_accuracy": acc_hits / acc_n if acc_n else float("nan"),
-        "mode_switches": switches, "grade_changes": grade_changes, "settle_s": SETTLE_S,
+        "mode_switches": switches, "grade_changes": grade_changes,
+        "road_holding_entries": road_holding_entries(a["reason"]), "settle_s": SETTLE_S,
         "trace_sha256": digest,
         "energy": energy,
         "akf_r_guard_hits": guard_hits,

@@ -235,3 +235,43 @@ def test_relative_acceptance_moves_the_ba_and_dtd_bounds_by_the_vehicles_own_lim
     bad.write_text('[campaign]\nroutes = ["city"]\n[criteria]\nacceptance = "yes"\n')
     with pytest.raises(ConfigError, match="criteria.acceptance"):
         cp.load(bad)
+
+
+def test_a_segment_under_the_road_holding_override_is_judged_by_the_mode_it_was_driven_in(
+        tmp_path):
+    """Safety first: where the override drove a D segment in safety mode, the comprehensive
+    acceptance and limit do not judge it; a segment driven wholly in safety is judged as
+    safety, one split between modes by none, and the report lists it with its share under
+    the override. A few per cent in another mode leave the segment its mode."""
+    path = tmp_path / "c.toml"
+    path.write_text(f'[campaign]\nroutes = ["{ROOT}/campaigns/acceptance_route.toml"]\n')
+    case = cp.load(path).cases[0]
+    cfg, route = cp.vehicle_config(case["vehicle"], 1.0), cp.route_of(case["route"])
+    d = route.segments[2]
+    assert d.grade == "D"
+    ratio = {"ba": 0.96, "sws": 0.95, "dtd": 0.88}          # (safety mode's: sum 2.79)
+
+    def judged(modes, share):
+        seg = {"grade": "D", "speed_mps": 20.0, "scored": True, "ratio": ratio,
+               "modes": modes, "road_holding_share": share}
+        return cp._judge(cfg, route, d, seg, "auto", True)
+
+    whole = judged({"safety": 1.0}, 1.0)
+    assert whole["mode"] == "safety" and whole["limit_name"] == "safety_dtd" and whole["ok"]
+    split = judged({"comprehensive": 0.87, "safety": 0.13}, 0.13)
+    assert split["mode"] == cp.MIXED and split["gap"] is None and split["ok"]
+    mostly = judged({"comprehensive": 0.97, "safety": 0.03}, 0.03)
+    assert mostly["mode"] == "comprehensive" and mostly["limit_name"] == "eq43_sum"
+    assert not mostly["ok"] and "sum_eq43" in mostly["why"]     # (its acceptance, strictly)
+    db = cp.open_db(tmp_path / "campaign.sqlite")
+    for i, row in enumerate((whole, split)):
+        row["idx"] = 2
+        c = dict(case, seed=i + 1)
+        cp.store(db, "t", {"case_id": cp.case_id(c), "case": c, "software_version": "v",
+                           "calibration_sha256": "", "trace_sha256": "", "verdict": "pass",
+                           "failed": [], "wall_s": 1.0, "worker": "w", "segments": [row]})
+    db.close()
+    rep = cp.report(tmp_path / "campaign.sqlite")
+    assert rep["mixed"] == [{"vehicle": "default", "segment": "D@20", "n": 1,
+                             "road_holding_share": 0.13}]
+    assert [(r["mode"], r["n"]) for r in rep["ratios"]] == [("safety", 1)]

@@ -116,11 +116,33 @@ def test_a_fail_safe_episode_is_not_a_mode_switch_but_chatter_is():
 
     mode = np.array([2, 2, 0, 0, 2, 2, 3, 3], dtype=np.int8)
     faults = np.zeros(8, dtype=np.int32)
-    assert mode_switches(mode, faults) == 3            # comfort -> passive -> comfort -> safety
+    reason = np.zeros(8, dtype=np.int8)
+    assert mode_switches(mode, faults, reason) == 3     # comfort -> passive -> comfort -> safety
     faults[2:4] = safety.FAULT_PLAUSIBILITY             # the passive ticks were a fail-safe
-    assert mode_switches(mode, faults) == 1
+    assert mode_switches(mode, faults, reason) == 1
     faults[2:4] = safety.FAULT_RATE                     # not safety-relevant: a real switch
-    assert mode_switches(mode, faults) == 3
+    assert mode_switches(mode, faults, reason) == 3
+
+
+def test_the_road_holding_override_is_counted_apart_from_the_mode_switches():
+    """Safety first: the override's safety mode is not the driver's mode changing (the
+    comprehensive mode on a D road, overridden twice); its entries are counted on their own."""
+    import numpy as np
+
+    from firmware.modes import REASON_FAULT, REASON_ROAD_HOLDING
+    from hil.sil import mode_switches, road_holding_entries
+
+    mode = np.array([2, 4, 4, 3, 3, 4, 3, 3, 4, 4, 3], dtype=np.int8)
+    reason = np.zeros(11, dtype=np.int8)
+    faults = np.zeros(11, dtype=np.int32)
+    assert mode_switches(mode, faults, reason) == 6 and road_holding_entries(reason) == 0
+    reason[[3, 4, 6, 7]] = REASON_ROAD_HOLDING
+    assert mode_switches(mode, faults, reason) == 2     # comfort -> comprehensive -> safety
+    assert road_holding_entries(reason) == 2
+    reason[10] = REASON_FAULT                           # (a fault is not the override)
+    assert road_holding_entries(reason) == 2
+    reason[0] = REASON_ROAD_HOLDING                     # from the first tick on: one entry
+    assert road_holding_entries(reason) == 3
 
 
 def test_a_run_whose_nodes_wrote_nothing_still_leaves_a_failing_report(tmp_path, capsys):
