@@ -70,6 +70,7 @@ void fx_init(fx_state_t *s)
     for (i = 0; i < 5; i++) s->b_h[i] = FX_BP_B_HIDDEN_Q31[i];
     for (i = 0; i < 15; i++) s->w_o[i] = FX_BP_W_OUT_Q31[i];
     for (i = 0; i < 3; i++) s->b_o[i] = FX_BP_B_OUT_Q31[i];
+    s->bp_fresh = 1;
 }
 
 /* ------------------------------------------------------------------ 1. measure */
@@ -237,8 +238,13 @@ static int32_t bppid_step(fx_state_t *s)
     }
     for (k = 0; k < 3; k++) {
         s->gains[k] = AM(FX_BP_SCALE, k, g[k], FX_F_NN, gf[k]);
+        /* the PID's gains: the network's, low-passed (firmware/control/bppid.py) */
+        s->k_pid[k] = s->bp_fresh ? s->gains[k]
+                    : add(s->k_pid[k], CM(FX_BP_GAIN_ALPHA, sub(s->gains[k], s->k_pid[k]),
+                                          gf[k], gf[k]));
     }
-    u = pid_step(&s->bp_pid, neg(s->ba), s->gains[0], s->gains[1], s->gains[2],
+    s->bp_fresh = 0;
+    u = pid_step(&s->bp_pid, neg(s->ba), s->k_pid[0], s->k_pid[1], s->k_pid[2],
                  &du[0], &du[1], &du[2]);
     /* learning */
     for (k = 0; k < 3; k++) {
@@ -394,6 +400,7 @@ int16_t fx_control(fx_state_t *s, int want, int passive, int fault, int regen)
             s->pid.u = 0;
         } else if (want == CTRL_BPPID) {
             s->bp_pid.u = 0;
+            s->bp_fresh = 1;
         }
     }
     force = force_of(s, s->ctrl);

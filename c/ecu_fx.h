@@ -25,6 +25,8 @@ typedef struct {
     int32_t w_h[20], b_h[5], w_o[15], b_o[3];
     int32_t dw_h[20], db_h[5], dw_o[15], db_o[3];
     int32_t gains[3];
+    int32_t k_pid[3];             /* the PID's gains: the network's, low-passed */
+    int bp_fresh;                 /* seed k_pid with the network's gains at the next step */
     int32_t integ, i_ref_prev, voltage, i_prev;
     int observer_valid;
     int32_t force;

@@ -148,9 +148,9 @@ def comfort_total_gain(cfg: VehicleConfig, opts: DesignOptions, model):
 
     Without (b) the optimum nearly cancels the spring (the default car: 9 % left), and then
     any slow force error moves the body: the BP-PID, whose gains follow the measured BA,
-    rectifies the sensor noise into a force of some 20 N that wanders (measured in the SIL),
-    which took the default car's SWS to twice passive. Both hold below some bound and fail
-    above it: bisection, ten steps (about 1.5 s)."""
+    rectified BA into a force of some 20 N that wandered (measured in the SIL, before the
+    PID took the gains low-passed), which took the default car's SWS to twice passive. Both
+    hold below some bound and fail above it: bisection, ten steps (about 1.5 s)."""
     ks = cfg.vehicle.spring_stiffness_n_per_m
     sws_max, dtd_bound = opts.comfort_bound
 
@@ -311,7 +311,8 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
         bp_w_hidden=rng.normal(0.0, 0.5, (5, 4)), bp_b_hidden=rng.normal(0.0, 0.5, 5),
         bp_w_out=rng.normal(0.0, 0.5, (3, 5)), bp_b_out=np.zeros(3),
         bp_eta=opts.bp_eta, bp_alpha=opts.bp_alpha, bp_scale=bp_scale,
-        bp_input_scale=1.0, regen_c=opts.regen_c, regen_skyhook_c=opts.regen_skyhook_c,
+        bp_input_scale=1.0, bp_gain_alpha=min(1.0, dt / opts.bp_gain_tau_s),
+        regen_c=opts.regen_c, regen_skyhook_c=opts.regen_skyhook_c,
         regen_min_voltage_ratio=opts.regen_min_voltage_ratio, force_limit=force_limit)
     a = math.exp(-ap.winding_resistance_ohm * dt / ap.winding_inductance_h)
     bc = (1 - a) / ap.winding_resistance_ohm

@@ -120,6 +120,7 @@ def build_tables(p: EcuParams) -> FxTables:
         bp_eta=fx(c.bp_eta, F_W, F_W), bp_alpha=fx(c.bp_alpha, F_W, F_W),
         bp_scale=tuple(fx(c.bp_scale[k], F_NN, gain_f[k]) for k in range(3)),
         bp_inv_input_scale=fx(1.0 / c.bp_input_scale, F_ACC, F_NN),
+        bp_gain_alpha=fx(c.bp_gain_alpha, 0, 0),
         bp_du_scale=tuple(fx(c.bp_scale[k] / FORCE_REF_N, du_f[k], F_NN) for k in range(3)),
         tanh_lut=tanh_lut(),
         ramp_ticks=p.modes.ramp_ticks, controllers=tuple(p.modes.controllers))

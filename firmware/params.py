@@ -157,6 +157,7 @@ class ControlParams:
     bp_alpha: float              # momentum
     bp_scale: np.ndarray         # (3,) K_p, K_i, K_d = scale * g(net)
     bp_input_scale: float        # BA normalisation for the network inputs
+    bp_gain_alpha: float         # per tick: the PID's gains low-pass the network's by this
     regen_c: float               # harvesting damping on relative velocity (N s/m)
     regen_skyhook_c: float       # skyhook part of the regen law (N s/m)
     regen_min_voltage_ratio: float  # keep |V| >= ratio*|EMF| so power flows into storage

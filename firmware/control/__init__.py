@@ -58,6 +58,8 @@ def command(p: ControlParams, cs: ControlState, want: int, ramp_ticks: int, x: n
         cs.ctrl_from, cs.ctrl, cs.ramp = cs.ctrl, want, 0
         if want in (CTRL_PID, CTRL_BPPID):
             pid.reset_to(cs.pid if want == CTRL_PID else cs.bppid.pid, 0.0)
+        if want == CTRL_BPPID:
+            cs.bppid.fresh = True
     force = force_of(p, cs, cs.ctrl, x, ba, dt)
     if cs.ramp < ramp_ticks:
         cs.ramp += 1

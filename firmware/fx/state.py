@@ -41,6 +41,8 @@ class FxState:
     dw_o: list = field(default_factory=lambda: [0] * 15)
     db_o: list = field(default_factory=lambda: [0] * 3)
     gains: list = field(default_factory=lambda: [0] * 3)
+    k_pid: list = field(default_factory=lambda: [0] * 3)   # the PID's: gains, low-passed
+    bp_fresh: bool = True                                  # seed k_pid at the next step
     # actuator
     integ: int = 0
     i_ref_prev: int = 0

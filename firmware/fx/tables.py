@@ -102,6 +102,7 @@ class FxTables:
     bp_alpha: Fx              # weight -> weight
     bp_scale: tuple           # 3 x Fx nn -> gain formats
     bp_inv_input_scale: Fx    # acc -> nn
+    bp_gain_alpha: Fx         # gain -> gain (each gain's own format)
     bp_du_scale: tuple        # 3 x Fx: scale_l / FORCE_REF_N, du/dK_l (acc, vel, jerk) -> nn
     tanh_lut: tuple           # TANH_N + 1 ints at F_TANH
     ramp_ticks: int

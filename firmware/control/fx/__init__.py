@@ -45,6 +45,7 @@ def control(T: FxTables, s: FxState, want: int, passive: bool, fault: bool, rege
             s.pid.u = 0
         elif want == CTRL_BPPID:
             s.bp_pid.u = 0
+            s.bp_fresh = True
     force = force_of(T, s, s.ctrl)
     n = T.ramp_ticks
     if s.ramp < n:

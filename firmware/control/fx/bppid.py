@@ -1,11 +1,11 @@
 """The BP-PID network in fixed point (C: ``tanh_q``, ``learn_layer``, ``bppid_step``): the
-forward pass through the tanh table, the PID with the network's gains, and the learning step
-in Q(F_W)."""
+forward pass through the tanh table, the PID with the network's gains (low-passed,
+``firmware.control.bppid``), and the learning step in Q(F_W)."""
 
 from __future__ import annotations
 
 from firmware.control.fx.pid import pid_step
-from firmware.fixedpoint import add, mul, neg, rshift_round, sat32
+from firmware.fixedpoint import add, mul, neg, rshift_round, sat32, sub
 from firmware.fx.state import FxState
 from firmware.fx.tables import (F_ACC, F_JERK, F_NN, F_TANH, F_VEL, F_W, ONE_NN, TANH_N,
                                 TANH_STEP_BITS, FxTables, cm)
@@ -44,7 +44,13 @@ def bppid_step(T: FxTables, s: FxState) -> int:
         g.append(sat32(rshift_round(ONE_NN + tanh_q(T, sat32(acc)), 1)))
     gf = (T.f_kp, T.f_ki, T.f_kd)
     s.gains = [cm(T.bp_scale[k], g[k], F_NN, gf[k]) for k in range(3)]
-    u, tp, ti, td = pid_step(T, s.bp_pid, neg(s.ba), *s.gains)
+    if s.bp_fresh:                    # the PID's gains: the network's, low-passed
+        s.k_pid = list(s.gains)
+        s.bp_fresh = False
+    else:
+        s.k_pid = [add(s.k_pid[k], cm(T.bp_gain_alpha, sub(s.gains[k], s.k_pid[k]), gf[k],
+                                      gf[k])) for k in range(3)]
+    u, tp, ti, td = pid_step(T, s.bp_pid, neg(s.ba), *s.k_pid)
     # learning (firmware.control.bppid): deltas and weight steps in Q(F_W)
     du = (tp, ti, td)
     du_f = (F_ACC, F_VEL, F_JERK)
