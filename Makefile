@@ -21,9 +21,10 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(PY) -m hil run $(SIM_ARGS) --pace lockstep --out out/run
 
-# the whole suite: the layer contracts, then every test (HIL, golden traces and slow ones too)
+# the whole suite: the layer contracts, then every test (HIL, golden traces and slow ones too);
+# the 15 slowest are listed at the end (where CI time goes)
 test: lint
-	$(PY) -m pytest -q -n 2 --dist loadgroup
+	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=15
 
 # the unit tier: no HIL, no golden traces, no long simulation (a minute or so on a warm machine)
 test-fast: lint
@@ -76,7 +77,7 @@ vcan-shell: $(STAMP) vcan-setup
 
 # the tests that make sense on vcan0 (marker vcan), in UML
 vcan-test: $(STAMP) vcan-setup
-	$(PY) -m hil vcan --timeout 3000 -- $(PY) -m pytest -q -p no:cacheprovider -m vcan
+	$(PY) -m hil vcan --timeout 3000 -- $(PY) -m pytest -q -p no:cacheprovider -m vcan --durations=0
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
