@@ -577,9 +577,9 @@ def report(db_path: Path) -> dict:
                           "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
                           "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
                           "NULL").fetchall()
-        mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, s.metrics FROM "
-                           "segments s JOIN cases c USING (case_id) WHERE s.mode = ?",
-                           (MIXED,)).fetchall()
+        mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, "
+                           "json_extract(s.metrics, '$.road_holding_share') FROM segments s "
+                           "JOIN cases c USING (case_id) WHERE s.mode = ?", (MIXED,)).fetchall()
         meta = dict(db.execute("SELECT key, value FROM meta"))
     finally:
         db.close()
@@ -611,7 +611,7 @@ def report(db_path: Path) -> dict:
     held: dict[tuple, list] = {}
     for m in mixed:
         held.setdefault((_label({"name": m[0], "factors": json.loads(m[1])}),
-                         f"{m[2]}@{m[3]:g}"), []).append(json.loads(m[4]))
+                         f"{m[2]}@{m[3]:g}"), []).append(m[4] or 0.0)
     worst = sorted(segs, key=lambda s: -s[8])[:10]
     passed = sum(c[4] == "pass" for c in cases)
     return {"campaign": name, "cases": len(cases), "passed": passed, "max_gap": max_gap,
@@ -619,9 +619,9 @@ def report(db_path: Path) -> dict:
             "wall_s": sum(c[8] for c in cases),
             "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
             "ratios": rows,
-            "mixed": [{"vehicle": v, "segment": seg, "n": len(ms),
-                       "road_holding_share": sum(m.get("road_holding_share", 0.0) for m in ms)
-                       / len(ms)} for (v, seg), ms in sorted(held.items())],
+            "mixed": [{"vehicle": v, "segment": seg, "n": len(shares),
+                       "road_holding_share": sum(shares) / len(shares)}
+                      for (v, seg), shares in sorted(held.items())],
             "worst": [{"case_id": s[0], "vehicle": s[1], "factors": json.loads(s[2]),
                        "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),

@@ -37,10 +37,13 @@ def write_outputs(out: Path, report: dict, trace, cfg=None, route=None) -> list[
     return [path, md, *figs]
 
 
-def road_holding_note(report: dict) -> str:
-    """", the road-holding override N times" when it took over (nothing when it did not)."""
+def switches_phrase(report: dict) -> str:
+    """"N mode switches for M grade changes", and ", the road-holding override K times" when
+    it took over."""
     n = report.get("road_holding_entries", 0)
-    return f", the road-holding override {n} time{'s' if n != 1 else ''}" if n else ""
+    held = f", the road-holding override {n} time{'s' if n != 1 else ''}" if n else ""
+    return (f"{report['mode_switches']} mode switches for {report['grade_changes']} grade "
+            f"changes{held}")
 
 
 def _energy_line(energy: dict) -> str:
@@ -68,9 +71,7 @@ def markdown(report: dict, figures: list[str]) -> str:
               + (f", {bench['wall_s']:.1f} s wall (RTF {bench['rtf']:.2f}), pace "
                  f"{bench.get('pace')}, bus {bench.get('bus')}" if "wall_s" in bench else ""),
               f"- trace_sha256: `{report['trace_sha256']}`",
-              f"- grade accuracy {report['grade_accuracy']:.3f}; {report['mode_switches']} mode "
-              f"switches for {report['grade_changes']} grade changes"
-              f"{road_holding_note(report)}",
+              f"- grade accuracy {report['grade_accuracy']:.3f}; {switches_phrase(report)}",
               f"- driver: {report['driver']['policy']}, requests {report['driver']['requests']}",
               _energy_line(report["energy"]), ""]
     if "realtime" in bench:

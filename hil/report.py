@@ -9,7 +9,7 @@ from pathlib import Path
 from hil.cli import progress_bar
 from hil.config import VehicleConfig
 from hil.drive import drive, segment_masks
-from hil.figures import road_holding_note
+from hil.figures import switches_phrase
 from calib.model import linear_model, passive_rms
 from hil.road import Route
 
@@ -101,9 +101,7 @@ def render_sil(report: dict) -> None:
                         f"seed {report['seed']}",
                   caption=f"ratios to the passive twin (RMS after {report.get('settle_s', 3):g} s "
                           f"per segment); grade accuracy {report['grade_accuracy']:.3f}; "
-                          f"{report['mode_switches']} mode switches for "
-                          f"{report['grade_changes']} grade changes"
-                          f"{road_holding_note(report)}; trace "
+                          f"{switches_phrase(report)}; trace "
                           f"{report['trace_sha256'][:16]}")
     for col in ("seg", "BA", "SWS", "DTD", "F rms N", "grade ok", "harv W", "cons W", "road mm"):
         table.add_column(col, justify="right", no_wrap=True, min_width=5)

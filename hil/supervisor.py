@@ -573,7 +573,8 @@ def _partial_report(out: Path, cfg, route, args, n: int, dt: float, logger: Opti
         report = {"route": route.name, "mode": args.mode, "controller": args.controller,
                   "seed": args.seed, "vehicle": cfg.source, "duration_s": 0.0, "segments": [],
                   "grade_accuracy": float("nan"), "mode_switches": 0, "grade_changes": 0,
-                  "road_holding_entries": 0, "settle_s": sil.SETTLE_S, "trace_sha256": "", "energy": {},
+                  "road_holding_entries": 0, "settle_s": sil.SETTLE_S, "trace_sha256": "",
+                  "energy": {},
                   "driver": {"policy": args.driver, "requests": {}}, "frames_sent": {},
                   "records": f"not all node records were written ({type(exc).__name__})"}
     report["incomplete"] = reason
