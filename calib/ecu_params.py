@@ -22,7 +22,7 @@ from calib.galqr import tune, vehicle_digest
 from calib.iso8608 import CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M
 from calib.linear import comfort_design, safety_design
 from calib.model import (linear_model, mechanics, paper_thresholds, state_covariance,
-                         van_loan_integral)
+                         van_loan_integral, window_scatter)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from firmware import params as fp
 
@@ -134,6 +134,49 @@ def grade_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.GradeParams:
         dtd1=dtd1, ba1=ba1, ba2=ba2)
 
 
+# Table 3's body: the damping-like gains of calib.options are set for it
+REFERENCE_SPRUNG_MASS_KG = 320.0
+REFERENCE_SPRING_N_PER_M = 20000.0
+
+
+def damping_scale(vp) -> float:
+    """The car's body critical damping 2 sqrt(k_s m_s) over Table 3's (exactly 1.0 for it):
+    the factor on the fixed damping gains (skyhook, PID's K_i, the regen window), so they
+    damp every body alike."""
+    return math.sqrt((vp.spring_stiffness_n_per_m * vp.sprung_mass_kg)
+                     / (REFERENCE_SPRING_N_PER_M * REFERENCE_SPRUNG_MASS_KG))
+
+
+def window_bound(model, K, opts: DesignOptions) -> np.ndarray:
+    """exp(-z sigma) for [BA, SWS, DTD]: the exact ratio at most this keeps a ratio measured
+    over a drive of ``opts.ratio_window_s`` at most 1 with ``opts.ratio_window_z`` sigma
+    confidence (``calib.model.window_scatter``, sigma at the gain K)."""
+    _, sigma = window_scatter(model, K, opts.ratio_window_s)
+    return np.exp(-opts.ratio_window_z * sigma)
+
+
+SAFETY_BOUND_STEPS = 6       # the BA bound's fixed point: sigma hardly moves with the bound
+SAFETY_BOUND_TOL = 5e-4
+
+
+def safety_gain(model, opts: DesignOptions):
+    """The safety LQR (``calib.linear.safety_design``): min DTD with SWS at most
+    ``opts.safety_bound`` x passive and BA at most the smaller of that and ``window_bound``
+    at the design's own gain. The BA bound is a fixed point (each step rescales it by target
+    over exact ratio; two or three designs of 0.15 s). Returns the LimitResult."""
+    top = opts.safety_bound
+    b = top
+    for _ in range(SAFETY_BOUND_STEPS):
+        r = safety_design(model, (b, top))
+        ba = float(r.ratios[0])
+        target = min(top, float(window_bound(model, r.K, opts)[0]))
+        if ba <= target + SAFETY_BOUND_TOL and (b >= top or ba >= target - SAFETY_BOUND_TOL):
+            return r
+        b = min(top, b * target / ba)
+    raise ValueError(f"safety design: no BA bound within {SAFETY_BOUND_TOL} of its window "
+                     f"bound {target:.4f} after {SAFETY_BOUND_STEPS} steps")
+
+
 COMFORT_KI_FLOOR = 1.0      # N s/m: the network's K_i range where the design wants no skyhook
 COMFORT_BOUND_RANGE = (0.5, 1.2)   # the design's SWS bound is searched in this range
 
@@ -158,7 +201,8 @@ def comfort_total_gain(cfg: VehicleConfig, opts: DesignOptions, model):
         return comfort_design(model, (b, dtd_bound))
 
     def ok(r) -> bool:
-        return r.ratios[1] <= sws_max and ks + r.K[2] >= opts.comfort_min_stiffness * ks
+        sws_top = min(sws_max, window_bound(model, r.K, opts)[1])
+        return r.ratios[1] <= sws_top and ks + r.K[2] >= opts.comfort_min_stiffness * ks
 
     lo, hi = COMFORT_BOUND_RANGE
     best = design(hi)
@@ -209,7 +253,7 @@ def _feedback_designs(cfg: VehicleConfig, opts: DesignOptions
     take about 2 s, which a process building the same calibration again (a campaign worker,
     a test module, the fault campaign) would otherwise repeat."""
     model = linear_model(cfg.vehicle, GRADE_GQ_M3["C"], NOMINAL_SPEED_MPS)
-    k_safety = safety_design(model, opts.safety_bound).K
+    k_safety = safety_gain(model, opts).K
     k_comfort, bp_scale = comfort_gains(cfg, opts, model)
     return _read_only(k_safety), _read_only(k_comfort), _read_only(bp_scale)
 
@@ -302,17 +346,18 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
     k_safety, k_comfort, bp_scale = _feedback_designs(cfg, opts)
     k_comp = comprehensive_gain(cfg, opts, gains_file)
     rng = np.random.default_rng(opts.bp_seed)
+    scale = damping_scale(vp)
     force_limit = opts.force_limit_margin * ap.current_limit_a * ap.force_constant_n_per_a * ap.screw_efficiency
     control = fp.ControlParams(
         k_safety=k_safety, k_comprehensive=k_comp, k_comfort=k_comfort,
-        skyhook_c=opts.skyhook_c,
-        skyhook_passive_c=0.0, pid_kp=0.0, pid_ki=opts.pid_ki, pid_kd=0.0,
+        skyhook_c=opts.skyhook_c * scale,
+        skyhook_passive_c=0.0, pid_kp=0.0, pid_ki=opts.pid_ki * scale, pid_kd=0.0,
         pid_leak=1.0 - dt / opts.pid_leak_s,
         bp_w_hidden=rng.normal(0.0, 0.5, (5, 4)), bp_b_hidden=rng.normal(0.0, 0.5, 5),
         bp_w_out=rng.normal(0.0, 0.5, (3, 5)), bp_b_out=np.zeros(3),
         bp_eta=opts.bp_eta, bp_alpha=opts.bp_alpha, bp_scale=bp_scale,
         bp_input_scale=1.0, bp_gain_alpha=min(1.0, dt / opts.bp_gain_tau_s),
-        regen_c=opts.regen_c, regen_skyhook_c=opts.regen_skyhook_c,
+        regen_c=opts.regen_c * scale, regen_skyhook_c=opts.regen_skyhook_c * scale,
         regen_min_voltage_ratio=opts.regen_min_voltage_ratio, force_limit=force_limit)
     a = math.exp(-ap.winding_resistance_ohm * dt / ap.winding_inductance_h)
     bc = (1 - a) / ap.winding_resistance_ohm

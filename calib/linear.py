@@ -260,12 +260,13 @@ class RelativeFamily:
         return K5, np.sqrt(var / self.passive_var)
 
 
-def safety_design(model: LinearModel, bound: float = 1.0) -> LimitResult:
-    """Safety-mode LQR for the ECU: min DTD with BA and SWS <= ``bound`` x passive, designed
-    on the relative model (blind to the common mode) by the Lagrange dual, ratios computed
-    exactly on the full model. (The comprehensive mode's GA-LQR comes from
-    ``tools.tune_ga_lqr`` over the same family.)"""
-    return _relative_design(model, 2, (bound, bound))
+def safety_design(model: LinearModel, bound: float | tuple[float, float] = 1.0) -> LimitResult:
+    """Safety-mode LQR for the ECU: min DTD with BA and SWS <= ``bound`` x passive (one
+    bound for both, or (BA, SWS)), designed on the relative model (blind to the common mode)
+    by the Lagrange dual, ratios computed exactly on the full model. (The comprehensive
+    mode's GA-LQR comes from ``tools.tune_ga_lqr`` over the same family.)"""
+    bounds = (bound, bound) if np.isscalar(bound) else tuple(bound)
+    return _relative_design(model, 2, bounds)
 
 
 def comfort_design(model: LinearModel, bounds: tuple[float, float] = (1.0, 1.0)) -> LimitResult:
