@@ -53,7 +53,7 @@ class DesignOptions:
     # safety_bound and exp(-z sigma), sigma the scatter of the BA ratio over a drive of
     # ratio_window_s (calib.model.window_scatter): BA stays at most passive on such a drive
     # with z sigma confidence. A lightly damped body scatters most (the default car with its
-    # damper x0.7: 2.2 % over 180 s, bound 0.934); a well damped one least (the SUV with its
+    # damper x0.7: 2.2 % over 180 s, bound 0.935); a well damped one least (the SUV with its
     # damper x1.3: 0.6 %, so safety_bound)
     safety_bound: float = 0.98
     ratio_window_s: float = 180.0

@@ -280,3 +280,25 @@ def test_the_fixed_damping_gains_follow_the_body():
     for got, base in ((suv.regen_c, opts.regen_c), (suv.regen_skyhook_c, opts.regen_skyhook_c),
                       (suv.skyhook_c, opts.skyhook_c), (suv.pid_ki, opts.pid_ki)):
         assert got == pytest.approx(base * scale, rel=1e-12)
+
+
+def test_cli_scatter_says_how_long_a_drive_must_be():
+    """``tools.analysis scatter``: the ECU's safety design is set so that BA stays below
+    passive at 3 sigma on a drive of ratio_window_s, so the CLI finds that drive for the
+    design's BA (within the fixed point's 0.0005); a 60 s drive's BA ratio exceeds 1.0 more
+    often than a 180 s one's; the comfort design's ratios are reported too."""
+    from calib.options import DesignOptions
+
+    window = DesignOptions().ratio_window_s
+    short = run_cli("scatter", "--window", "60")
+    full = run_cli("scatter", "--window", f"{window:g}")
+    for out in (short, full):
+        assert set(out["designs"]) == {"safety", "comfort"}
+        for d in out["designs"].values():
+            assert set(d) == {"ratio", "sigma_log", "p_over_1", "drive_for_3_sigma_s"}
+    s60, s180 = short["designs"]["safety"], full["designs"]["safety"]
+    assert s60["ratio"] == s180["ratio"]
+    assert s60["sigma_log"]["ba"] == pytest.approx(s180["sigma_log"]["ba"] * np.sqrt(3.0))
+    assert s60["p_over_1"]["ba"] > 10 * s180["p_over_1"]["ba"]
+    assert s180["drive_for_3_sigma_s"]["ba"] == pytest.approx(window, rel=0.05)
+    assert s180["drive_for_3_sigma_s"]["ba"] == pytest.approx(s60["drive_for_3_sigma_s"]["ba"])

@@ -3,6 +3,7 @@
     python -m tools.analysis passive --grade B --speed 20 [--simulate 600 --seed 1] [--json]
     python -m tools.analysis thresholds [--json]
     python -m tools.analysis limits --grade B --speed 20 [--json]
+    python -m tools.analysis scatter --window 60 [--speed 20] [--json]
 
 Every sub-command takes ``--vehicle FILE`` and ``--convention iso|paper``.
 """
@@ -18,7 +19,7 @@ from hil.cli import (add_json_argument, add_vehicle_argument, emit, fail, grade_
                      positive_float, progress_bar, seed_arg, speed_arg, vehicle_or_exit)
 from hil.config import VehicleConfig
 from hil.drive import drive
-from calib.model import linear_model, paper_thresholds, passive_rms
+from calib.model import linear_model, paper_thresholds, passive_rms, window_scatter
 from hil.road import DEFAULT_CUTOFF_N_PER_M, constant_route, gq_of
 from calib.linear import physical_limits
 
@@ -77,6 +78,39 @@ def limits(cfg: VehicleConfig, grade: str, speed: float, convention: str = "iso"
     }
 
 
+def scatter(cfg: VehicleConfig, speed: float, window_s: float, convention: str = "iso",
+            cutoff: float = DEFAULT_CUTOFF_N_PER_M) -> dict:
+    """How far one drive of ``window_s`` can be trusted: for the ECU's safety and comfort
+    designs (built for this vehicle at the nominal speed, ``calib.ecu_params``; comfort as its
+    linear design, whose skyhook the BP-PID carries), the exact ratios to passive at
+    ``speed``, the standard deviation of the log of a ratio measured over the drive
+    (``calib.model.window_scatter``), the chance that it comes out above 1.0, and the drive
+    a ratio needs to stay below 1.0 at 3 sigma (the approximation holds for drives much
+    longer than the body's period: read a few seconds as "any drive")."""
+    from calib.ecu_params import comfort_total_gain, safety_gain
+    from calib.options import NOMINAL_SPEED_MPS, DesignOptions
+
+    opts = DesignOptions()
+    nominal = linear_model(cfg.vehicle, gq_of("C"), NOMINAL_SPEED_MPS, convention, cutoff)
+    gains = {"safety": safety_gain(nominal, opts).K,
+             "comfort": comfort_total_gain(cfg, opts, nominal).K}
+    model = _model(cfg, "C", speed, convention, cutoff)
+    out = {"speed_mps": speed, "window_s": window_s, "convention": convention,
+           "vehicle": cfg.source, "designs": {}}
+    for name, K in gains.items():
+        ratios, sigma = window_scatter(model, K, window_s)
+        d = {"ratio": {}, "sigma_log": {}, "p_over_1": {}, "drive_for_3_sigma_s": {}}
+        for i, key in enumerate(("ba", "sws", "dtd")):
+            r, s = float(ratios[i]), float(sigma[i])
+            d["ratio"][key], d["sigma_log"][key] = r, s
+            d["p_over_1"][key] = 0.5 * math.erfc(-math.log(r) / (s * math.sqrt(2.0)))
+            # sigma falls as 1/sqrt(T): 3 sigma(T) = -ln r at T = window (3 sigma / -ln r)^2
+            d["drive_for_3_sigma_s"][key] = (window_s * (3.0 * s / -math.log(r)) ** 2
+                                             if r < 1.0 else None)
+        out["designs"][name] = d
+    return out
+
+
 # -- rendering ---------------------------------------------------------------------------------
 
 def _table(title: str, rows: list[tuple[str, str]]) -> None:
@@ -130,6 +164,17 @@ def _render_limits(o: dict) -> None:
             ("   at", ratios("eq43"))])
 
 
+def _render_scatter(o: dict) -> None:
+    rows = []
+    for name, d in o["designs"].items():
+        for key in ("ba", "sws", "dtd"):
+            need = d["drive_for_3_sigma_s"][key]
+            rows.append((f"{name}: {key.upper()} ratio", f"{d['ratio'][key]:.3f} "
+                         f"± {d['sigma_log'][key]:.1%}, P(> 1) {d['p_over_1'][key]:.2%}, "
+                         + (f"3σ below 1 from {need:.0f} s" if need is not None else "never below 1")))
+    _table(f"A ratio over one drive of {o['window_s']:g} s at {o['speed_mps']:g} m/s", rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.analysis", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -156,6 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     common(p)
     p.add_argument("--grade", type=grade_arg, required=True)
     p.add_argument("--speed", type=speed_arg, required=True, metavar="MPS")
+    p = sub.add_parser("scatter", help="how much the ECU designs' ratios scatter on one drive")
+    common(p)
+    p.add_argument("--window", type=positive_float, default=60.0, metavar="SECONDS",
+                   help="the drive's length (default 60 s)")
+    p.add_argument("--speed", type=speed_arg, default=20.0, metavar="MPS")
     args = parser.parse_args(argv)
     cfg = vehicle_or_exit(args.vehicle)
 
@@ -167,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
             render = _render_passive
         elif args.command == "thresholds":
             out, render = thresholds(cfg, args.convention, args.cutoff), _render_thresholds
+        elif args.command == "scatter":
+            out = scatter(cfg, args.speed, args.window, args.convention, args.cutoff)
+            render = _render_scatter
         else:
             out = limits(cfg, args.grade, args.speed, args.convention, args.cutoff)
             render = _render_limits
