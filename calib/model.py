@@ -85,6 +85,21 @@ def output_covariance(model: LinearModel, K: np.ndarray | None = None) -> tuple[
     return var, float(K @ P @ K)
 
 
+def twin_system(model: LinearModel, K: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The car under u = -K x and its passive twin on one road, as one system:
+    (A, G, C_active, C_passive) with state [x_active, x_passive], the same white noise
+    driving both road states, and [BA, SWS, DTD] of each car as C z."""
+    n = model.A.shape[0]
+    K = np.zeros(n) if K is None else np.asarray(K, dtype=float)
+    zero = np.zeros((n, n))
+    A = np.block([[model.A - np.outer(model.B, K), zero], [zero, model.A]])
+    G = np.concatenate([model.G, model.G])
+    C_active = np.hstack([model.C - np.outer(model.D, K), np.zeros((3, n))])
+    C_passive = np.hstack([np.zeros((3, n)), model.C])
+    return A, G, C_active, C_passive
+
+
 def window_scatter(model: LinearModel, K: np.ndarray | None, window_s: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """How much a ratio measured on one finite drive scatters: (ratios, sigma) for [BA, SWS,
@@ -104,22 +119,17 @@ def window_scatter(model: LinearModel, K: np.ndarray | None, window_s: float
     BA ratio over 60 s scatters by about 2.5 %, as much as a design's margin."""
     if not window_s > 0.0:
         raise ValueError(f"window must be positive, got {window_s}")
-    n = model.A.shape[0]
-    K = np.zeros(n) if K is None else np.asarray(K, dtype=float)
-    zero = np.zeros((n, n))
-    A = np.block([[model.A - np.outer(model.B, K), zero], [zero, model.A]])
-    S = state_covariance(A, np.concatenate([model.G, model.G]))
+    A, G, C_active, C_passive = twin_system(model, K)
+    S = state_covariance(A, G)
 
     def later(c1: np.ndarray) -> np.ndarray:
         """X with int_0^inf (c2 e^{A t} S c1')^2 dt = c2 X c2' (c1 now, c2 t later)."""
         u = S @ c1
         return solve_continuous_lyapunov(A, -np.outer(u, u))
 
-    C_cl = model.C - np.outer(model.D, K)
     ratios, sigma = np.empty(3), np.empty(3)
     for i in range(3):
-        ca = np.concatenate([C_cl[i], np.zeros(n)])
-        cp = np.concatenate([np.zeros(n), model.C[i]])
+        ca, cp = C_active[i], C_passive[i]
         va, vp = float(ca @ S @ ca), float(cp @ S @ cp)
         xa, xp = later(ca), later(cp)
         v_a = 4.0 * float(ca @ xa @ ca) / window_s      # (2/T) x 2 int_0^inf

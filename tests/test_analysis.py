@@ -193,25 +193,20 @@ def test_window_scatter_matches_many_simulated_drives():
     from scipy.linalg import expm
 
     from calib.linear import safety_design
-    from calib.model import state_covariance, van_loan_integral, window_scatter
+    from calib.model import state_covariance, twin_system, van_loan_integral, window_scatter
 
     model = linear_model(CFG.vehicle, gq_of("C"), 20.0)
     K = safety_design(model, 0.955).K
     window, dt, drives = 20.0, 0.002, 400
     ratios, sigma = window_scatter(model, K, window)
     n = model.A.shape[0]
-    zero = np.zeros((n, n))
-    A = np.block([[model.A - np.outer(model.B, K), zero], [zero, model.A]])
-    G = np.concatenate([model.G, model.G])
+    A, G, out_a, out_p = twin_system(model, K)
     S = state_covariance(A, G)
     phi = expm(A * dt)
     Q = van_loan_integral(A.T, np.outer(G, G), dt)
     lq, ls = _sqrt_psd(Q), _sqrt_psd(S)       # (both singular: the twins share one road)
     rng = np.random.default_rng(5)
     x = ls @ rng.standard_normal((2 * n, drives))
-    C_cl = model.C - np.outer(model.D, K)
-    out_a = np.hstack([C_cl, np.zeros((3, n))])
-    out_p = np.hstack([np.zeros((3, n)), model.C])
     sum_a = np.zeros((3, drives))
     sum_p = np.zeros((3, drives))
     for _ in range(int(window / dt)):
