@@ -298,18 +298,26 @@ def test_bad_driver_script_is_a_one_line_error(tmp_path):
 def test_realtime_pacing_runs_and_reports_its_deadlines(tmp_path):
     """Realtime pacing: the plant holds 1 kHz; how many deadlines were missed is reported
     (the figure itself is a benchmark, not a test)."""
-    # (the limits are wide: this checks the mechanics on a test host running other tests
-    # in parallel; the timing figures are make bench's, the default limits a user's. A
-    # command late by 3 ticks makes the plant fall back to passive; the ECU's actuator test
-    # then sees the current stop and holds the bridge open for 0.1 s, so on a loaded host the
-    # fail-safe share follows the missed deadlines: both get the same wide limit)
+    # (this checks the mechanics on a test host running other tests in parallel; the timing
+    # figures are make bench's, the default limits a user's. Only the timing checks may fail
+    # here, as on vcan0 in UML: on a loaded host without SCHED_FIFO (CI) the ECU's own timer
+    # fires before a late sensor frame, the missing sample faults every ADC channel for
+    # recover_ticks (50) ticks, and the fail-safe share reached 0.59-0.80 of 3 s with four
+    # busy loops beside it, at 0.18 missed deadlines. Every other check must hold, and the
+    # exit code must say the verdict)
+    timing = {"missed_deadline_ratio", "lost_frame_ratio", "failsafe_ratio",
+              "plant_fallback_ratio"}
     proc = hil_run(tmp_path, "--route", str(ROUTES / "refusal.toml"), "--mode", "comfort",
                    "--pace", "realtime", "--duration", "3", "--max-missed-ratio", "0.3",
                    "--max-lost-ratio", "0.3")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.returncode in (0, 1), proc.stderr[-2000:]
     rep = json.loads(proc.stdout)
-    assert rep["verdict"] == "pass"
+    failed = {c["name"] for c in rep["checks"] if not c["ok"]}
+    assert failed <= timing, [c for c in rep["checks"] if not c["ok"]]
+    assert rep["verdict"] == ("fail" if failed else "pass")
+    assert proc.returncode == (1 if failed else 0)
     by = {c["name"]: c for c in rep["checks"]}
+    assert set(by) >= timing
     assert by["missed_deadline_ratio"]["limit"] == "<= 0.3"
     rt = rep["bench"]["realtime"]
     assert by["missed_deadline_ratio"]["value"] == rt["missed_deadline_ratio"]
