@@ -26,6 +26,9 @@ The campaign file (every key but ``routes`` optional)::
     file = "hil/vehicles/suv.toml"          # omit for the default car
     sprung_mass_kg = [0.8, 1.0, 1.2]        # variants: factors on keys of [vehicle]
 
+    [nonlinear]                             # every vehicle's [nonlinear] keys set to these
+    bump_stops = true                       # (a vehicle file's own table, then this one)
+
     [criteria]
     acceptance = true                       # the firmware issue's SIL acceptance per segment;
                                             # "relative": BA, DTD bounds moved by the
@@ -111,8 +114,9 @@ def load(path: str | Path) -> Campaign:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     for key in data:
-        if key not in ("campaign", "vehicle", "criteria"):
-            raise ConfigError(f"{path}: unknown table '{key}' (campaign, vehicle, criteria)")
+        if key not in ("campaign", "vehicle", "criteria", "nonlinear"):
+            raise ConfigError(f"{path}: unknown table '{key}' (campaign, vehicle, criteria, "
+                              "nonlinear)")
     c = data.get("campaign")
     if not isinstance(c, dict):
         raise ConfigError(f"{path}: missing table [campaign]")
@@ -137,7 +141,8 @@ def load(path: str | Path) -> Campaign:
     if duration is not None and not (isinstance(duration, (int, float))
                                      and math.isfinite(duration) and duration > 0):
         raise ConfigError(f"{path}: campaign.duration_s must be a positive number")
-    vehicles = [v for t in (data.get("vehicle") or [{}]) for v in _vehicles(path, t)]
+    nonlinear = _nonlinear(path, data.get("nonlinear"))
+    vehicles = [v for t in (data.get("vehicle") or [{}]) for v in _vehicles(path, t, nonlinear)]
     crit = data.get("criteria", {})
     max_gap = crit.get("max_gap")
     if max_gap is not None and not (isinstance(max_gap, (int, float)) and max_gap >= 0):
@@ -203,9 +208,27 @@ def _route_spec(path: Path, r: str) -> dict:
     return {"name": r}
 
 
-def _vehicles(path: Path, table: dict) -> list[dict]:
+def _nonlinear(path: Path, table) -> dict:
+    """The campaign's [nonlinear] table: keys of a vehicle file's [nonlinear], set on every
+    vehicle (checked here against the default car, in one line)."""
+    if table is None:
+        return {}
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: [nonlinear] must be a table")
+    from hil.config import NonlinearParams
+
+    known = [f.name for f in dataclasses.fields(NonlinearParams)]
+    for key in table:
+        if key not in known:
+            raise ConfigError(f"{path}: unknown key 'nonlinear.{key}' ({', '.join(known)})")
+    vehicle_config({"name": "default", "toml": None, "factors": {}, "nonlinear": table}, 1.0,
+                   f"{path}: ")
+    return dict(table)
+
+
+def _vehicles(path: Path, table: dict, nonlinear: dict) -> list[dict]:
     """A [[vehicle]] table: its file as text (none: the default car) and each combination of
-    its factor lists."""
+    its factor lists; ``nonlinear``: the campaign's [nonlinear] keys, on each."""
     from hil.config import load_vehicle
 
     if not isinstance(table, dict):
@@ -232,6 +255,8 @@ def _vehicles(path: Path, table: dict) -> list[dict]:
     for combo in itertools.product(*axes) if axes else [()]:
         factors = {k: v for k, v in combo if v != 1.0}
         spec = {"name": name, "toml": text, "factors": factors}
+        if nonlinear:                     # (absent when empty: earlier cases keep their ids)
+            spec["nonlinear"] = nonlinear
         if factors:                       # a variant the bench cannot simulate: said now
             from hil.config import check_plausible
 
@@ -249,16 +274,18 @@ def case_id(case: dict) -> str:
     return hashlib.sha256(json.dumps(case, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def vehicle_config(spec: dict, noise: float):
-    """The case's vehicle: its file (or the default car), the factors on [vehicle], the noise
-    factor on every sensor."""
+def vehicle_config(spec: dict, noise: float, where: str = ""):
+    """The case's vehicle: its file (or the default car), the factors on [vehicle], the
+    campaign's [nonlinear] keys, the noise factor on every sensor."""
     from hil.config import DEFAULT_VEHICLE_FILE, _parse, default_vehicle
 
     base = default_vehicle()
     data = tomllib.loads(spec["toml"] or DEFAULT_VEHICLE_FILE.read_text())
     for key, factor in spec["factors"].items():
         data["vehicle"][key] = data["vehicle"][key] * factor
-    cfg = _parse(data, Path(f"<{_label(spec)}>"), None if not spec["toml"] else base)
+    if spec.get("nonlinear"):
+        data["nonlinear"] = {**data.get("nonlinear", {}), **spec["nonlinear"]}
+    cfg = _parse(data, Path(f"{where}<{_label(spec)}>"), None if not spec["toml"] else base)
     if noise != 1.0:
         sensors = {f.name: dataclasses.replace(getattr(cfg.sensors, f.name),
                                                noise_std=getattr(cfg.sensors, f.name).noise_std
@@ -293,7 +320,7 @@ def command(case: dict, db_path: str = "DB") -> str:
         parts.append("--fixed-point")
     if case["duration_s"] is not None:
         parts.append(f"--duration {case['duration_s']:g}")
-    if v["factors"] or case["noise"] != 1.0:
+    if v["factors"] or v.get("nonlinear") or case["noise"] != 1.0:
         return f"python -m hil campaign-case {db_path} {case_id(case)}"
     return " ".join(parts + ["--key-file KEY"])
 

@@ -188,6 +188,34 @@ def test_the_shipped_vehicle_family_campaign_loads():
     assert len(camp.cases) == 220 == len({cp.case_id(c) for c in camp.cases})
     assert camp.max_gap == 0.03 and camp.acceptance == "relative"
     assert {c["vehicle"]["name"] for c in camp.cases} == {"default", "suv"}
+    # with their bump stops: the linear model's stroke passes the deflection sensor's range
+    assert all(cp.vehicle_config(c["vehicle"], 1.0).nonlinear.bump_stops for c in camp.cases)
+
+
+def test_the_campaign_s_nonlinear_table_sets_every_vehicle_s(tmp_path):
+    """[nonlinear] sets those keys of every vehicle (the default car's table and a vehicle
+    file without one alike); its cases are new cases; a bad key or value is one line."""
+    path = tmp_path / "c.toml"
+    base = (f'[campaign]\nroutes = ["city"]\n[[vehicle]]\n[[vehicle]]\n'
+            f'file = "{ROOT}/hil/vehicles/suv.toml"\nsprung_mass_kg = [1.2]\n')
+    path.write_text(base)
+    plain = cp.load(path).cases
+    path.write_text(base + "[nonlinear]\nbump_stops = true\nbump_stop_clearance_m = 0.07\n")
+    stops = cp.load(path).cases
+    for c in plain:
+        assert not cp.vehicle_config(c["vehicle"], 1.0).nonlinear.bump_stops
+    for c in stops:
+        nl = cp.vehicle_config(c["vehicle"], 1.0).nonlinear
+        assert nl.bump_stops and nl.bump_stop_clearance_m == 0.07 and not nl.tire_lift_off
+        assert cp.command(c).startswith("python -m hil campaign-case DB ")
+    assert not {cp.case_id(c) for c in plain} & {cp.case_id(c) for c in stops}
+    for text, what in {"[nonlinear]\nstops = true\n": "unknown key 'nonlinear.stops'",
+                       "[nonlinear]\nbump_stops = 1\n": "nonlinear.bump_stops",
+                       "[nonlinear]\nbump_stop_clearance_m = -0.1\n": "must be positive",
+                       "nonlinear = 3\n": "[nonlinear] must be a table"}.items():
+        path.write_text(text + base if text.startswith("nonlinear =") else base + text)
+        with pytest.raises(ConfigError, match=what.replace("[", r"\[")):
+            cp.load(path)
 
 
 def test_the_reproducing_command_of_a_route_file_or_an_own_vehicle_is_campaign_case(tmp_path):
