@@ -325,6 +325,19 @@ def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
         raise ConfigError(f"{cfg.source}: no ECU calibration for this vehicle: {exc}") from None
 
 
+def current_rail_mps(cfg: VehicleConfig, opts: DesignOptions) -> float:
+    """The relative velocity beyond which a motor current at its sensor's rail is explained
+    (``firmware.adc``): the margin times the velocity at which the back-EMF K v alone, against
+    the lower of the bus and storage voltages, drives the current I_rail = the smaller rail's
+    magnitude through the winding R: (V + R I_rail) / K. (The bridge's hardware limit keeps
+    the current it drives itself below the rail; only the back-EMF takes it further.)"""
+    ap, cur = cfg.actuator, cfg.sensors.motor_current
+    i_rail = min(abs(cur.range_min), abs(cur.range_max))
+    v = min(ap.bus_voltage_v, ap.storage_voltage_v)
+    return opts.adc_current_rail_margin * (v + ap.winding_resistance_ohm * i_rail) \
+        / ap.force_constant_n_per_a
+
+
 def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | None
            ) -> fp.EcuParams:
     opts = opts or DesignOptions()
@@ -336,7 +349,8 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
 
     adc = fp.AdcParams(chan(sp.body_accel), chan(sp.wheel_accel), chan(sp.susp_defl),
                        chan(sp.motor_current), chan(sp.speed), rail_ticks=opts.adc_rail_ticks,
-                       recover_ticks=opts.adc_recover_ticks)
+                       recover_ticks=opts.adc_recover_ticks,
+                       current_rail_mps=current_rail_mps(cfg, opts))
     plant = fp.PlantParams(vp.sprung_mass_kg, vp.unsprung_mass_kg, vp.spring_stiffness_n_per_m,
                            vp.damping_n_s_per_m, vp.tire_stiffness_n_per_m,
                            ap.viscous_friction_n_s_per_m, ap.force_constant_n_per_a,

@@ -24,6 +24,11 @@ class DesignOptions:
     # ADC plausibility (firmware.adc)
     adc_rail_ticks: int = 3               # consecutive samples at a rail that make a fault
     adc_recover_ticks: int = 50           # consecutive good samples that clear it
+    # the motor current at its sensor's rail is explained (not a fault) while the estimated
+    # relative velocity is at least this share of the one at which the back-EMF alone, against
+    # the lower of the bus and storage voltages, drives the current to the rail (the margin
+    # covers the estimate's error and the winding's lag, L/R)
+    adc_current_rail_margin: float = 0.8
     # AKF (firmware.akf)
     use_wheel_accel: bool = True          # AKF measurement vector [BA, SWS, WA] vs [BA, SWS]
     akf_adaptive: bool = True

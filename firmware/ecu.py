@@ -90,9 +90,14 @@ def reset(st: EcuState, path: FloatPath | FixedPath) -> EcuState:
 def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     P, path = st.params, st.path
     st.tick = inp.tick
-    # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault)
+    # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault); the
+    #    motor current at a rail is explained while the last estimate's relative velocity is
+    #    one at which the back-EMF alone drives it there
+    x = st.akf.x
+    explained = (adc.FAULT_BIT["motor_current"]
+                 if abs(float(x[0]) - float(x[1])) >= P.adc.current_rail_mps else 0)
     (ba, wa, defl, i_meas, speed), faults = adc.sample(P.adc, st.adc, (
-        inp.body_accel, inp.wheel_accel, inp.susp_defl, inp.motor_current, inp.speed))
+        inp.body_accel, inp.wheel_accel, inp.susp_defl, inp.motor_current, inp.speed), explained)
     faults |= inp.link_faults
     # 2. AKF: predict with the force from the measured current, correct with [BA, SWS, WA]
     #    (uses 1 and the grade's G_q) -> estimate st.akf.x; a non-finite one is reset

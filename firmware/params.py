@@ -55,6 +55,10 @@ class AdcParams:
     speed: AdcChannel
     rail_ticks: int          # consecutive samples at a rail that make a channel faulty
     recover_ticks: int       # consecutive good samples that clear the fault (hysteresis)
+    # relative velocity (m/s) beyond which the back-EMF alone drives the motor current past its
+    # sensor's range: the current at a rail is then a measurement beyond the range, not a
+    # fault (inf: never)
+    current_rail_mps: float = float("inf")
 
 
 @dataclass(frozen=True)

@@ -66,6 +66,46 @@ def test_adc_stuck_at_rail_and_recovery_hysteresis():
     assert faults == 0
 
 
+def test_adc_explained_rail_is_clipped_not_faulty():
+    """A rail the ECU explains is a sample beyond the range (not measured), not a fault; the
+    same rail is a fault rail_ticks samples after the explanation ends."""
+    st, bit = adc.AdcState(), adc.FAULT_BIT["motor_current"]
+    top = raw(motor_current=P.adc.motor_current.full_scale)
+    for _ in range(5 * P.adc.rail_ticks):
+        _, faults = adc.sample(P.adc, st, top, explained=bit)
+        assert faults == 0 and not adc.measured(st, ("motor_current",))
+    # another channel's explanation does not cover it
+    for k in range(P.adc.rail_ticks):
+        _, faults = adc.sample(P.adc, st, top, explained=adc.FAULT_BIT["susp_defl"])
+        assert faults == (bit if k + 1 >= P.adc.rail_ticks else 0)
+    st = adc.AdcState()
+    adc.sample(P.adc, st, raw())
+    assert adc.measured(st, ("motor_current",))
+
+
+def test_ecu_explains_a_current_rail_by_the_estimated_velocity():
+    """The ECU takes the motor current at its rail for a measurement beyond the range while its
+    estimate's relative velocity is one at which the back-EMF alone drives the current there,
+    and for a fault (stuck sensor) when the suspension moves slowly."""
+    vehicle = default_vehicle()
+    ap, cur = vehicle.actuator, vehicle.sensors.motor_current
+    # the velocity at which K v - V = R I_rail, from the vehicle file's numbers
+    v_emf = (min(ap.bus_voltage_v, ap.storage_voltage_v)
+             + ap.winding_resistance_ohm * min(-cur.range_min, cur.range_max)) \
+        / ap.force_constant_n_per_a
+    assert P.adc.current_rail_mps < v_emf < 1.5 * P.adc.current_rail_mps
+    bit = adc.FAULT_BIT["motor_current"]
+    rail = P.adc.motor_current.full_scale
+    for v_rel, expect_fault in ((1.1 * v_emf, False), (0.5 * P.adc.current_rail_mps, True)):
+        st = ecu.init(P)
+        worst = 0
+        for k in range(5 * P.adc.rail_ticks):
+            st.akf.x[0], st.akf.x[1] = v_rel, 0.0       # the estimate the ECU starts the tick with
+            st, out = ecu.step(st, ecu.Inputs(k, 2048, 2048, 2048, rail, 2000))
+            worst |= out.faults
+        assert bool(worst & bit) == expect_fault, v_rel
+
+
 # -- modes -------------------------------------------------------------------------------------
 
 # these tests send a request every step; the spam limit has its own test below
