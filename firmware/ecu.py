@@ -90,14 +90,11 @@ def reset(st: EcuState, path: FloatPath | FixedPath) -> EcuState:
 def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     P, path = st.params, st.path
     st.tick = inp.tick
-    # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault); the
-    #    motor current at a rail is explained while the last estimate's relative velocity is
-    #    one at which the back-EMF alone drives it there
-    x = st.akf.x
-    explained = (adc.FAULT_BIT["motor_current"]
-                 if abs(float(x[0]) - float(x[1])) >= P.adc.current_rail_mps else 0)
+    # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault; a rail
+    #    the last estimate explains is none)
     (ba, wa, defl, i_meas, speed), faults = adc.sample(P.adc, st.adc, (
-        inp.body_accel, inp.wheel_accel, inp.susp_defl, inp.motor_current, inp.speed), explained)
+        inp.body_accel, inp.wheel_accel, inp.susp_defl, inp.motor_current, inp.speed),
+        _explained_rails(st))
     faults |= inp.link_faults
     # 2. AKF: predict with the force from the measured current, correct with [BA, SWS, WA]
     #    (uses 1 and the grade's G_q) -> estimate st.akf.x; a non-finite one is reset
@@ -129,6 +126,15 @@ def step(st: EcuState, inp: Inputs) -> tuple[EcuState, Outputs]:
     # 8. diagnostics: the command for the actuator test, the DTC memory (uses 1-7)
     _diagnostics(P, st.diag, inp, out, duty, mode, g_est, faults)
     return st, out
+
+
+def _explained_rails(st: EcuState) -> int:
+    """Stage 1's explained rails (``firmware.adc``): the motor current's while the last
+    estimate's relative velocity is one at which the back-EMF alone drives the current past
+    its sensor's range (``AdcParams.current_rail_mps``)."""
+    x = st.akf.x
+    fast = abs(float(x[0]) - float(x[1])) >= st.params.adc.current_rail_mps
+    return adc.FAULT_BIT["motor_current"] if fast else 0
 
 
 def _diagnostics(P: EcuParams, ds: diag.DiagState, inp: Inputs, out: Outputs, duty: int,
