@@ -259,9 +259,9 @@ def _feedback_designs(cfg: VehicleConfig, opts: DesignOptions
 
 
 @functools.lru_cache(maxsize=32)
-def _tuned_gain(cfg: VehicleConfig, bound: tuple) -> np.ndarray:
+def _tuned_gain(cfg: VehicleConfig, opts: DesignOptions) -> np.ndarray:
     """The GA-LQR's gain tuned now (default seed), read-only and kept for the process."""
-    result = tune(cfg, 0, bound)
+    result = tune(cfg, 0, opts=opts)
     if not result["feasible"]:
         raise ConfigError(f"{cfg.source}: GA-LQR found no gains meeting Eq. (44) with margin")
     return _read_only(result["K"])
@@ -312,7 +312,7 @@ def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path
     shipped = default_gains_path(cfg)
     if shipped.exists():
         return load_gains(shipped, cfg)
-    return _tuned_gain(cfg, tuple(opts.comprehensive_bound))
+    return _tuned_gain(cfg, opts)
 
 
 def build(cfg: VehicleConfig, opts: DesignOptions | None = None,

@@ -63,8 +63,11 @@ class DesignOptions:
     safety_bound: float = 0.98
     ratio_window_s: float = 180.0
     ratio_window_z: float = 3.0
-    comprehensive_bound: tuple = (0.95, 0.95, 0.95)  # GA-LQR constraint (44) with margins,
-    # per output [BA, SWS, DTD]: the ECU's estimation and force tracking cost a few per cent
+    # GA-LQR constraint (44) with margins, per output [BA, SWS, DTD]: each ratio at most this
+    # and at most exp(-z sigma) over ratio_window_s at the tuned gain (calib.galqr; the
+    # seeds' scatter). The ECU's estimation and force tracking cost little on D (the SIL's
+    # sum within 0.01 of the design's); a fixed 0.95 cost the SUV with its spring x0.7 0.080
+    comprehensive_bound: tuple = (0.98, 0.98, 0.98)
     skyhook_c: float = 3000.0             # (these two as regen_c: Table 3's, scaled per car)
     pid_ki: float = 3500.0
     pid_leak_s: float = 1.5               # time constant of the incremental PID's leak
