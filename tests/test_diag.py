@@ -144,6 +144,23 @@ def test_actuator_and_supply_faults_are_detected_isolated_and_fail_safe(tmp_path
     assert tr["enable"][-200:].all() and not failed[-200:].any()
 
 
+def test_a_stuck_duty_that_outlives_the_retry_is_failed_again_within_its_window(tmp_path):
+    """The actuator test retries after its hold; where the duty is still stuck, the retry
+    judges it against the EMF advanced through the hold (the motion's), not one learnt from
+    the first response after the retry (which took the stuck duty's voltage error for EMF:
+    the rest of the window went unseen, and its end then looked like a new fault)."""
+    node, failed = _drive(tmp_path, hardware="stuck_duty")
+    en = np.asarray(node.trace()["enable"]).astype(bool)
+    end = FAULT_AT + faults.PLAUSIBLE_TICKS
+    retries = np.flatnonzero(~en[:-1] & en[1:]) + 1
+    inside = retries[(retries > FAULT_AT) & (retries < end)]
+    assert inside.size, "no retry inside the fault window"
+    for t in inside:
+        assert not en[t:end].all(), f"the retry at {t} drove the stuck duty to the window's end"
+    onsets = np.flatnonzero((failed[1:] != 0) & (failed[:-1] == 0)) + 1
+    assert not (onsets >= end).any(), f"a failure after the fault ended: {onsets[onsets >= end]}"
+
+
 def test_flatline_lengths_follow_the_noise_model():
     # BA: 0.02 m/s^2 noise on 60/4095 m/s^2 steps: a repeat has probability <= 0.207
     p = (60 / 4095) / (2 * 0.02 * math.sqrt(math.pi))

@@ -247,7 +247,8 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
     # at it: the bridge lowered its voltage) the advanced estimate, not re-learnt. An EMF
     # learnt while no current flowed is weak (an open winding shows the applied voltage as
     # its EMF): where current then starts to flow against it (a winding conducting again),
-    # the outlier is learnt from, not judged.
+    # the outlier is learnt from, not judged. It advances too while this test's failure holds
+    # the bridge open: learnt again after the retry, it took a stuck duty's voltage for EMF.
     at_limit = limited or abs(i_meas) >= P.plant.current_limit - 5.0 * F.cur_sigma_a
     if used is not None:                     # (the open bridge's: no EMF to see)
         volt = used[0] if used[1] else None
@@ -260,7 +261,7 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
     if volt is not None and live and st.live1 and not (at_limit or outlier):
         st.emf = volt - (i_meas - a * st.i1) / b
         st.emf_weak = abs(i_meas) < quiet and abs(st.i1) < quiet
-    elif volt is not None and live and st.live1:
+    elif live and st.live1 and (volt is not None or (st.act_latched and model_ok)):
         st.emf = emf                         # (None where there was none to advance)
     else:
         st.emf = None
@@ -269,7 +270,7 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
     if st.act_latched:                       # a failure holds until the retry
         if tick < st.act_until:
             return st.act_latched, st.act_latched
-        st.act_latched, st.act, st.act_onset, st.emf = 0, 1.0, -1, None
+        st.act_latched, st.act, st.act_onset = 0, 1.0, -1
     if not (verdict and model_ok and math.isfinite(v)):
         return 0, 0
     st.act += F.act_lambda * (min(v, F.clip) - st.act)
