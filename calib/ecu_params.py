@@ -22,7 +22,7 @@ from calib.galqr import tune, vehicle_digest
 from calib.iso8608 import CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M
 from calib.linear import comfort_design, safety_design
 from calib.model import (linear_model, mechanics, output_covariance, paper_thresholds,
-                         state_covariance, van_loan_integral, window_scatter)
+                         state_covariance, van_loan_integral, window_bound)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from firmware import params as fp
 
@@ -145,14 +145,6 @@ def damping_scale(vp) -> float:
     damp every body alike."""
     return math.sqrt((vp.spring_stiffness_n_per_m * vp.sprung_mass_kg)
                      / (REFERENCE_SPRING_N_PER_M * REFERENCE_SPRUNG_MASS_KG))
-
-
-def window_bound(model, K, opts: DesignOptions) -> np.ndarray:
-    """exp(-z sigma) for [BA, SWS, DTD]: the exact ratio at most this keeps a ratio measured
-    over a drive of ``opts.ratio_window_s`` at most 1 with ``opts.ratio_window_z`` sigma
-    confidence (``calib.model.window_scatter``, sigma at the gain K)."""
-    _, sigma = window_scatter(model, K, opts.ratio_window_s)
-    return np.exp(-opts.ratio_window_z * sigma)
 
 
 SAFETY_BOUND_STEPS = 6       # the BA bound's fixed point: sigma hardly moves with the bound

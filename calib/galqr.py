@@ -8,7 +8,7 @@ ratios do not depend on the grade). Fitness: Eq. (43), the sum of the three rati
 Eq. (44) with a design margin (each ratio <= its bound), violations penalised. The bound
 follows the vehicle: each ratio at most ``DesignOptions.comprehensive_bound`` and at most
 exp(-z sigma), sigma the scatter of that ratio over a drive of ``ratio_window_s`` at the
-tuned gain (``calib.model.window_scatter``; as the safety design's BA): a ratio then stays
+tuned gain (``calib.model.window_bound``; as the safety design's BA): a ratio then stays
 below 1 on such a drive with z sigma confidence, and no further margin is taken where the
 car does not scatter (the SUV with its spring x0.7: the Eq. (43) optimum has BA 0.964 and
 DTD 0.981, and a fixed 0.95 cost it 0.080 of the sum).
@@ -31,7 +31,7 @@ from deap.tools import selection as deap_selection
 
 from calib.iso8608 import GRADE_GQ_M3
 from calib.linear import RelativeFamily
-from calib.model import linear_model, window_scatter
+from calib.model import linear_model, window_bound
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 
 
@@ -75,8 +75,7 @@ def tune(cfg, seed: int = 0, bound=None, population: int = POPULATION,
     b = cap.copy()
     for _ in range(WINDOW_STEPS):
         result = run(b)
-        _, sigma = window_scatter(model, np.asarray(result["K"]), opts.ratio_window_s)
-        top = np.minimum(cap, np.exp(-opts.ratio_window_z * sigma))
+        top = np.minimum(cap, window_bound(model, np.asarray(result["K"]), opts))
         ratios = np.array([result["ratios"][k] for k in ("ba", "sws", "dtd")])
         result["window_bound"] = top.tolist()
         if np.all(ratios <= top + WINDOW_TOL):

@@ -18,6 +18,7 @@ from scipy.linalg import expm, solve_continuous_lyapunov
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_noise_gain
 
 if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
+    from calib.options import DesignOptions
     from hil.config import VehicleParams
 
 OUTPUTS = ("ba", "sws", "dtd")
@@ -139,6 +140,14 @@ def window_scatter(model: LinearModel, K: np.ndarray | None, window_s: float
         ratios[i] = math.sqrt(va / vp)
         sigma[i] = math.sqrt(max(var_log, 0.0))
     return ratios, sigma
+
+
+def window_bound(model: LinearModel, K: np.ndarray | None, opts: DesignOptions) -> np.ndarray:
+    """exp(-z sigma) for [BA, SWS, DTD]: the exact ratio at most this keeps a ratio measured
+    over a drive of ``opts.ratio_window_s`` at most 1 with ``opts.ratio_window_z`` sigma
+    confidence (``window_scatter``, sigma at the gain K)."""
+    _, sigma = window_scatter(model, K, opts.ratio_window_s)
+    return np.exp(-opts.ratio_window_z * sigma)
 
 
 def passive_psd(model: LinearModel, f_hz: np.ndarray) -> np.ndarray:
