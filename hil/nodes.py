@@ -36,6 +36,7 @@ import numpy as np
 from calib.fx_tables import build_tables
 from firmware import ecu, safety
 from firmware.diag import uds
+from firmware.modes import REASON_NONE
 from firmware import params as fp
 from firmware.path import FixedPath
 from hil import secoc
@@ -641,7 +642,7 @@ class AppNode:
         if self.on_request is not None:
             self.on_request(self.t * self.dt, name, mode)
 
-    def _decide(self, rec: int, active: int) -> None:
+    def _decide(self, rec: int, active: int, reason: int = REASON_NONE) -> None:
         t = self.t
         if self.policy == "fixed" and not self._chosen:
             self._chosen = True
@@ -659,6 +660,11 @@ class AppNode:
             return
         if rec != self._shown:
             self._shown, self._shown_since = rec, t
+        if reason != REASON_NONE:
+            # the ECU overrides the driver's mode (road holding, a fault): the active mode is
+            # not the driver's, so a recommendation that differs from it asks nothing of the
+            # driver (accepting or refusing it again would be a second request in a few ticks)
+            return
         if (rec != active and rec != self._answered
                 and t - self._shown_since >= self.reaction_ticks):
             self._answered = rec
@@ -691,7 +697,7 @@ class AppNode:
                 if rec != self._told and self.on_recommend is not None:
                     self._told = rec
                     self.on_recommend(self.t * self.dt, *rec)
-                self._decide(*rec)
+                self._decide(*rec, int(s["REASON"]))
                 if self.inject is not None:
                     self.inject.before_answer(self)
             fid, data = self.tx.frame("DRIVER_REQUEST", {

@@ -42,6 +42,36 @@ def test_interactive_policy_sends_what_was_pushed():
     assert (d2["REQ_KIND"], d2["REQ_ID"]) == (fp.REQ_CHOOSE, 1) and d2["COUNTER"] == 1
 
 
+def _recommend(app, rec, active, reason=0, status_frames=1):
+    """``status_frames`` ECU_STATUS (10 ms each), then one MODE_RECOMMEND; the app's answer."""
+    for _ in range(status_frames):
+        app.on_frame(ID["ECU_STATUS"], CODEC.encode_raw("ECU_STATUS", {}))
+    frame = CODEC.encode_raw("MODE_RECOMMEND", {"RECOMMENDED_MODE": rec, "ACTIVE_MODE": active,
+                                                "REASON": reason, "OVERRIDE": int(reason == 1)})
+    (fid, data), = app.on_frame(ID["MODE_RECOMMEND"], frame)
+    d = CODEC.decode(fid, data).signals
+    return d["REQ_KIND"], d["REQ_ID"]
+
+
+@pytest.mark.parametrize("policy", ["auto", "refuse"])
+def test_the_app_does_not_answer_again_while_the_ecu_overrides_the_drivers_mode(policy):
+    # seed 6 of the vehicle family (the default car with tyre x1.3): the driver accepted D,
+    # 15 ms later road holding put the car in safety, and the app accepted D again at once:
+    # a second request within request_min_s, which the ECU reports as spam (FAULT_RATE)
+    app = AppNode(CODEC, policy, reaction_ticks=1000)
+    D, C = fp.MODE_COMPREHENSIVE, fp.MODE_SAFETY
+    assert _recommend(app, D, C, status_frames=1)[1] == 0         # shown, not yet for 1 s
+    kind, rid = _recommend(app, D, C, status_frames=100)
+    assert rid == 1 and kind == (fp.REQ_ACCEPT if policy == "auto" else fp.REQ_REFUSE)
+    if policy == "auto":
+        assert _recommend(app, D, D)[1] == 1                      # the ECU took it
+    for reason in (1, 2):                                         # road holding, a fault
+        for _ in range(30):
+            assert _recommend(app, D, C, reason=reason, status_frames=10)[1] == 1
+    # the override ends and the car is back in the driver's mode: still nothing to answer
+    assert _recommend(app, D, D if policy == "auto" else C, status_frames=10)[1] == 1
+
+
 def test_unknown_policy_is_refused():
     with pytest.raises(ValueError, match="unknown driver policy"):
         AppNode(CODEC, "sporty")
