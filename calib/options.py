@@ -74,7 +74,8 @@ class DesignOptions:
     pid_leak_s: float = 1.5               # time constant of the incremental PID's leak
     # comfort (BP-PID around a state feedback, calib.ecu_params.comfort_gains): the exact
     # SWS ratio of the law as the ECU runs it (the PID's leak included,
-    # calib.ecu_params.comfort_as_run) and the design's DTD ratio at most these x passive
+    # calib.ecu_params.comfort_as_run) and its DTD ratio at most these x passive (the LQR
+    # design's own DTD ratio, then the as-run one in calib.ecu_params.comfort_polish)
     # (SWS also at most exp(-z sigma) over ratio_window_s, as for safety: the seeds' scatter),
     # the suspension's static stiffness at least comfort_min_stiffness x the spring's (half:
     # the whole spring cost the default car 0.016 of BA ratio); the network's gain ranges:

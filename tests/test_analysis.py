@@ -137,29 +137,54 @@ def test_cli_rejects_bad_arguments():
 
 @pytest.mark.parametrize("vehicle", ["default", "suv"])
 def test_the_comfort_design_follows_the_vehicle(vehicle):
-    """calib.ecu_params.comfort_total_gain for each car: the SWS ratio of the law as the ECU
-    runs it (with the PID's leak) and the DTD ratio within the design's bounds, the static
-    stiffness rule, BA near that car's own limit, and a loop stable over the BP-PID's whole
+    """calib.ecu_params.comfort_law for each car: the SWS ratio of the law as the ECU runs it
+    (with the PID's leak) and its DTD ratio within the design's bounds, the static stiffness
+    rule, BA within 0.03 of that car's own limit, and a loop stable over the BP-PID's whole
     K_i range (build raises otherwise)."""
-    from calib.ecu_params import (_comfort_loop, build, comfort_as_run, comfort_total_gain,
-                                  window_bound)
+    from calib.ecu_params import _comfort_loop, build, comfort_as_run, comfort_law, window_bound
     from calib.options import DesignOptions
 
     cfg = default_vehicle() if vehicle == "default" else SUV
     opts = DesignOptions()
     model = linear_model(cfg.vehicle, gq_of("C"), 20.0)
-    res = comfort_total_gain(cfg, opts, model)
+    K = comfort_law(cfg, opts, model)
     ks = cfg.vehicle.spring_stiffness_n_per_m
-    run = comfort_as_run(model, res.K, opts)
-    loop = _comfort_loop(model, res.K, opts)      # (the window's scatter of the law as run)
-    assert run[1] <= min(opts.comfort_bound[0], window_bound(*loop, opts)[1])
-    assert res.ratios[2] <= 1.0
-    assert ks + res.K[2] >= opts.comfort_min_stiffness * ks
-    gap = res.value - limits(cfg, "C", 20.0)["comfort_ba_ratio"]
-    assert 0.0 < gap < 0.035, gap
+    run = comfort_as_run(model, K, opts)
+    loop = _comfort_loop(model, K, opts)          # (the window's scatter of the law as run)
+    assert run[1] <= min(opts.comfort_bound[0], window_bound(*loop, opts)[1]) + 1e-9
+    assert run[2] <= opts.comfort_bound[1] + 1e-9
+    assert ks + K[2] >= opts.comfort_min_stiffness * ks - 1e-6
+    gap = run[0] - limits(cfg, "C", 20.0)["comfort_ba_ratio"]
+    assert 0.0 < gap < 0.03, gap
     p = build(cfg, opts)
-    assert p.control.k_comfort[0] == pytest.approx(res.K[0] - p.control.bp_scale[1])
-    assert p.control.bp_scale[1] > 0.5 * res.K[0]      # the network carries the skyhook
+    assert p.control.k_comfort[0] == pytest.approx(K[0] - p.control.bp_scale[1])
+    assert p.control.bp_scale[1] > 0.5 * K[0]          # the network carries the skyhook
+
+
+def test_the_comfort_polish_beats_the_lqr_family_where_the_sws_bound_binds():
+    """The SUV with its tyre x0.7: the LQR family's best under the bounds on the law as run
+    (comfort_total_gain) is BA 0.045 above the limit; the whole gain polished under the same
+    bounds (comfort_polish) is within 0.03 of it, meets every bound, and is stable."""
+    from calib.ecu_params import (_comfort_loop, _comfort_poles, comfort_as_run, comfort_polish,
+                                  comfort_total_gain, window_bound)
+    import dataclasses
+
+    from calib.options import DesignOptions
+
+    vp = SUV.vehicle
+    cfg = dataclasses.replace(SUV, vehicle=dataclasses.replace(
+        vp, tire_stiffness_n_per_m=0.7 * vp.tire_stiffness_n_per_m))
+    opts = DesignOptions()
+    model = linear_model(cfg.vehicle, gq_of("C"), 20.0)
+    limit = limits(cfg, "C", 20.0)["comfort_ba_ratio"]
+    start = comfort_total_gain(cfg, opts, model).K
+    K = comfort_polish(cfg, opts, model, start)
+    before, after = comfort_as_run(model, start, opts), comfort_as_run(model, K, opts)
+    assert before[0] - limit > 0.04 and after[0] - limit < 0.03
+    assert after[1] <= min(opts.comfort_bound[0],
+                           window_bound(*_comfort_loop(model, K, opts), opts)[1]) + 1e-9
+    assert after[2] <= opts.comfort_bound[1] + 1e-9
+    assert all(pole < 0.0 for _, pole in _comfort_poles(model, K, opts))
 
 
 def test_the_comfort_law_as_run_is_the_design_without_the_leak():
