@@ -165,10 +165,10 @@ def test_the_comfort_polish_beats_the_lqr_family_where_the_sws_bound_binds():
     """The SUV with its tyre x0.7: the LQR family's best under the bounds on the law as run
     (comfort_total_gain) is BA 0.045 above the limit; the whole gain polished under the same
     bounds (comfort_polish) is within 0.03 of it, meets every bound, and is stable."""
-    from calib.ecu_params import (_comfort_loop, _comfort_poles, comfort_as_run, comfort_polish,
-                                  comfort_total_gain, window_bound)
     import dataclasses
 
+    from calib.ecu_params import (_comfort_loop, _comfort_poles, comfort_as_run, comfort_polish,
+                                  comfort_total_gain, window_bound)
     from calib.options import DesignOptions
 
     vp = SUV.vehicle
