@@ -277,20 +277,20 @@ def comfort_polish(cfg: VehicleConfig, opts: DesignOptions, model, start: np.nda
     sws_max, dtd_bound = opts.comfort_bound
     start = np.asarray(start, dtype=float)
     scale = np.maximum(np.abs(start), 1.0)
-    passive, _ = output_covariance(model)
     memo: dict = {}
 
     def at(x: np.ndarray):
+        """(ratios as run, their window bound) at the scaled gain x; None if unstable."""
         key = x.tobytes()
         if key not in memo:
-            aug, K = _comfort_loop(model, x * scale, opts)
+            total = x * scale
+            aug, K = _comfort_loop(model, total, opts)
             a_cl = aug.A - np.outer(aug.B, K)
             if (not float(np.max(np.linalg.eigvals(a_cl).real)) < 0.0
-                    or not all(p < 0.0 for _, p in _comfort_poles(model, x * scale, opts))):
+                    or not all(p < 0.0 for _, p in _comfort_poles(model, total, opts))):
                 memo[key] = None
             else:
-                var, _ = output_covariance(aug, K)
-                memo[key] = (np.sqrt(var / passive), window_bound(aug, K, opts))
+                memo[key] = (comfort_as_run(model, total, opts), window_bound(aug, K, opts))
         return memo[key]
 
     def margins(x: np.ndarray) -> np.ndarray:
