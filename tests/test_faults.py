@@ -19,6 +19,7 @@ from hil.codec import Codec
 from hil.config import default_vehicle
 from calib.ecu_params import build
 from hil.nodes import ID
+from tests import golden
 from tests.procutil import children, cmdline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,8 +33,9 @@ CAMPAIGN = pytest.mark.xdist_group("fault_campaign")
 @pytest.fixture(scope="module")
 def campaign_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("faults")
-    proc = subprocess.run([sys.executable, "-m", "hil", "faults", "--json", "--out", str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, "-m", "hil", "faults", "-i", "remote", "--json",
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     doc = json.loads(proc.stdout)
     assert doc["verdict"] == "pass" and len(doc["checks"]) == len(doc["results"])
@@ -72,6 +74,18 @@ def test_campaign_over_the_bus_meets_the_acceptance(campaign_dir):
             assert r["failsafe_ticks"] == 0, r        # harmless faults do not stop control
         if spec.node == "app":
             assert r["mode_kept"], r                   # spam and bad modes change nothing
+
+
+@CAMPAIGN
+def test_the_campaign_gives_the_golden_fault_table(campaign_dir):
+    """Every row as tests/golden/faults.json pins it (make vcan-test compares the campaign on
+    vcan0 with the same table; ``python -m tests.golden faults --update`` rewrites it when a
+    change alters a row on purpose)."""
+    out, rows = campaign_dir
+    want = golden.load_faults()
+    assert want["command"] == golden.FAULTS_COMMAND
+    problems = golden.diff(want["results"], golden.fault_rows(rows, out))
+    assert not problems, "\n".join(problems)
 
 
 @CAMPAIGN

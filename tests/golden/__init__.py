@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import subprocess
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,6 +115,38 @@ def run(s: Scenario, trace: Optional[list] = None) -> dict:
 
 def load() -> dict:
     return json.loads(GOLDEN_FILE.read_text())
+
+
+# the fault campaign over the hub, pinned beside the scenarios (``faults.json``): every fault's
+# row (detection, reaction and recovery ticks, fault bits, DTCs, notes), its out directory
+# written as DIR and the project's as ROOT. make test's campaign and make vcan-test's on vcan0 are each compared with it.
+FAULTS = "faults"
+FAULTS_FILE = HERE / "faults.json"
+FAULTS_COMMAND = "python -m hil faults -i remote --json --out DIR"
+
+
+def fault_rows(rows: list, out: Path) -> list:
+    """``hil faults`` result rows with their out directory's path written as DIR and the
+    project's as ROOT (notes name files)."""
+    return json.loads(json.dumps(rows).replace(str(out), "DIR").replace(str(ROOT), "ROOT"))
+
+
+def run_faults() -> dict:
+    """The fault campaign over the hub, as FAULTS_COMMAND runs it; the pinned values."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "faults"
+        proc = subprocess.run([sys.executable, "-m", "hil", "faults", "-i", "remote", "--json",
+                               "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                              timeout=1200)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{FAULTS_COMMAND} exited {proc.returncode}: "
+                               f"{proc.stderr.strip()[-2000:]}")
+        return {"command": FAULTS_COMMAND,
+                "results": fault_rows(json.loads(proc.stdout)["results"], out)}
+
+
+def load_faults() -> dict:
+    return json.loads(FAULTS_FILE.read_text())
 
 
 def diff(want, got, path: str = "") -> list[str]:

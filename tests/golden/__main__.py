@@ -14,15 +14,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tests.golden", description=__doc__)
     ap.add_argument("--update", action="store_true",
                     help="rewrite golden.json with what the code gives now")
-    ap.add_argument("names", nargs="*", help="scenarios (default: all)")
+    ap.add_argument("names", nargs="*",
+                    help=f"scenarios, or {golden.FAULTS} for the fault table (default: all)")
     args = ap.parse_args(argv)
-    unknown = set(args.names) - set(golden.BY_NAME)
+    unknown = set(args.names) - set(golden.BY_NAME) - {golden.FAULTS}
     if unknown:
         print(f"error: unknown scenario(s): {', '.join(sorted(unknown))}", file=sys.stderr)
         return 2
-    names = args.names or [s.name for s in golden.SCENARIOS]
+    names = args.names or [s.name for s in golden.SCENARIOS] + [golden.FAULTS]
     want = golden.load() if golden.GOLDEN_FILE.exists() else {}
     got, failed = dict(want), []
+    if golden.FAULTS in names:
+        names.remove(golden.FAULTS)
+        if not _faults(args.update):
+            failed.append(golden.FAULTS)
     for name in names:
         res = golden.run(golden.BY_NAME[name])
         got[name] = res
@@ -34,14 +39,35 @@ def main(argv: list[str] | None = None) -> int:
             failed.append(name)
             for p in problems:
                 print(f"    {p}")
-    if args.update:
+    if args.update and names:
         order = [s.name for s in golden.SCENARIOS]
         golden.GOLDEN_FILE.write_text(json.dumps({k: got[k] for k in order if k in got},
                                                  indent=1) + "\n")
         print(f"wrote {golden.GOLDEN_FILE}")
+    if args.update:
         return 0
     print("verdict: " + ("PASS" if not failed else f"FAIL ({', '.join(failed)})"))
     return 1 if failed else 0
+
+
+def _faults(update: bool) -> bool:
+    """Check (or rewrite) the fault table; False when it differs and is not rewritten."""
+    try:
+        res = golden.run_faults()
+    except RuntimeError as e:
+        print(f"{golden.FAULTS:24s} FAILED   {e}")
+        return False
+    want = golden.load_faults() if golden.FAULTS_FILE.exists() else None
+    problems = golden.diff(want, res) if want is not None else ["not in faults.json"]
+    status = "ok" if not problems else ("updated" if update else "DIFFERS")
+    print(f"{golden.FAULTS:24s} {status:8s} {len(res['results'])} faults over the hub")
+    if update:
+        golden.FAULTS_FILE.write_text(json.dumps(res, indent=1) + "\n")
+        print(f"wrote {golden.FAULTS_FILE}")
+        return True
+    for p in problems:
+        print(f"    {p}")
+    return not problems
 
 
 if __name__ == "__main__":
