@@ -320,6 +320,43 @@ def command(case: dict, db_path: str = "DB") -> str:
     return " ".join(parts + ["--key-file KEY"])
 
 
+# what defines the program a case runs, beside its inputs: the packages' sources and data
+SOURCE_PACKAGES = ("firmware", "calib", "hil")
+SOURCE_SUFFIXES = (".py", ".toml", ".json")
+
+
+@functools.lru_cache(maxsize=1)
+def source_sha256() -> str:
+    """SHA-256 over the source and data files of the firmware, calib and hil packages and the
+    DBC, each by its path in the project: two processes with the same digest run the same
+    program (the ``software_version`` of a case says which)."""
+    import importlib
+
+    from hil.codec import DBC_PATH
+
+    files = []
+    for name in SOURCE_PACKAGES:
+        base = Path(importlib.import_module(name).__file__).resolve().parent
+        files += [(f"{name}/{f.relative_to(base).as_posix()}", f) for f in base.rglob("*")
+                  if f.suffix in SOURCE_SUFFIXES and "__pycache__" not in f.parts
+                  and f.is_file()]
+    files.append(("dbc/" + DBC_PATH.name, DBC_PATH))
+    h = hashlib.sha256()
+    for rel, f in sorted(files):
+        data = f.read_bytes()
+        h.update(f"{rel}\0{len(data)}\0".encode())
+        h.update(data)
+    return h.hexdigest()
+
+
+def software_version() -> str:
+    """The ECU's software version (DID 0xF195) and the digest of the code that ran it:
+    ``suspension-0.1.0+src.1a2b3c4d5e6f``."""
+    from calib.ecu_params import SOFTWARE_VERSION
+
+    return f"{SOFTWARE_VERSION}+src.{source_sha256()[:12]}"
+
+
 # the SecOC key of every case: fixed (public, like the golden runs'), so a case's bytes are
 # the same everywhere; the trace hash does not depend on it
 CASE_KEY = bytes(range(16))
@@ -334,10 +371,18 @@ def run_case(case: dict, acceptance: bool | str = True) -> dict:
         return _run_case(case, acceptance, t0)
     except Exception as exc:  # noqa: BLE001 - recorded with the case
         return {"case_id": case_id(case), "case": case, "calibration_sha256": "",
-                "software_version": "", "trace_sha256": "", "verdict": "error",
+                "software_version": _version_or_blank(), "trace_sha256": "",
+                "verdict": "error",
                 "failed": [f"{type(exc).__name__}: {exc}"],
                 "wall_s": time.perf_counter() - t0,
                 "worker": f"{socket.gethostname()}:{os.getpid()}", "segments": []}
+
+
+def _version_or_blank() -> str:
+    try:
+        return software_version()
+    except Exception:  # noqa: BLE001 - an error row without a version rather than none
+        return ""
 
 
 def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
@@ -360,7 +405,7 @@ def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
         segments.append(row)
     return {"case_id": case_id(case), "case": case,
             "calibration_sha256": bytes(params.calibration_sha256).hex(),
-            "software_version": params.software_version,
+            "software_version": software_version(),
             "trace_sha256": report["trace_sha256"],
             "verdict": "fail" if failed else "pass", "failed": failed,
             "wall_s": time.perf_counter() - t0,
@@ -488,6 +533,15 @@ def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
         db.execute("INSERT OR REPLACE INTO meta VALUES ('campaign', ?)", (campaign.name,))
         db.execute("INSERT OR REPLACE INTO meta VALUES ('max_gap', ?)",
                    (json.dumps(campaign.max_gap),))
+    version = software_version()
+    other = db.execute("SELECT software_version, count(*) FROM cases WHERE software_version "
+                       "!= ? GROUP BY software_version", (version,)).fetchall()
+    if other:
+        db.close()
+        raise ConfigError(
+            f"{db_path} holds {sum(n for _, n in other)} case(s) run by other software ("
+            f"{', '.join(v or '?' for v, _ in other)}; this is {version}): a resumed campaign "
+            "would mix them; run it into a new --out")
     have = done_ids(db)
     todo = [c for c in campaign.cases if case_id(c) not in have]
     counts = {"run": 0, "skipped": len(campaign.cases) - len(todo), "failed": 0}
@@ -595,6 +649,8 @@ def report(db_path: Path) -> dict:
     try:
         cases = db.execute("SELECT case_id, vehicle, factors, mode, verdict, failed, command, "
                            "trace_sha256, wall_s FROM cases ORDER BY case_id").fetchall()
+        versions = dict(db.execute("SELECT software_version, count(*) FROM cases GROUP BY "
+                                   "software_version ORDER BY software_version"))
         segs = db.execute("SELECT s.case_id, c.vehicle, c.factors, s.mode, s.grade, "
                           "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
                           "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
@@ -630,6 +686,8 @@ def report(db_path: Path) -> dict:
     over = sum(not r["ok"] for r in rows)
     if over:
         criteria[f"max_gap (mean ratio over its limit + {max_gap:g}; groups)"] = over
+    if len(versions) > 1:
+        criteria["one software version (cases of different code)"] = len(cases)
     held: dict[tuple, list] = {}
     for m in mixed:
         held.setdefault((_label({"name": m[0], "factors": json.loads(m[1])}),
@@ -639,6 +697,7 @@ def report(db_path: Path) -> dict:
     return {"campaign": name, "cases": len(cases), "passed": passed, "max_gap": max_gap,
             "pass_rate": passed / len(cases) if cases else float("nan"),
             "wall_s": sum(c[8] for c in cases),
+            "software_versions": versions,
             "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
             "ratios": rows,
             "mixed": [{"vehicle": v, "segment": seg, "n": len(shares),
@@ -648,7 +707,8 @@ def report(db_path: Path) -> dict:
                        "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
                        "command": s[10]} for s in worst],
-            "verdict": "pass" if cases and passed == len(cases) and not over else "fail"}
+            "verdict": "pass" if cases and passed == len(cases) and not over
+            and len(versions) == 1 else "fail"}
 
 
 def _t95(dof: int) -> float:
@@ -698,6 +758,8 @@ def render(rep: dict) -> None:
     con = Console()
     con.print(f"campaign {rep['campaign']}: {rep['passed']}/{rep['cases']} cases pass "
               f"({100 * rep['pass_rate']:.1f} %), {rep['wall_s']:.0f} s of worker time")
+    con.print("software: " + "; ".join(f"{v or '?'} ({n} cases)"
+                                       for v, n in rep["software_versions"].items()))
     if rep["failures_by_criterion"]:
         t = Table(title="failures by criterion")
         t.add_column("criterion")
@@ -762,6 +824,8 @@ def main(args) -> int:
         return 130
     except OSError as exc:
         fail(f"--scheduler {sched}: {exc}", 3)
+    except ConfigError as exc:
+        fail(str(exc))
     rep = report(db_path)
     rep["this_run"] = counts
     report_figure(rep, out / "ratios.png")

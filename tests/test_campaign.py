@@ -137,6 +137,36 @@ def test_a_killed_worker_loses_no_case_and_a_rerun_skips_what_is_done(tmp_path):
     again = hil("campaign", str(path), "--out", str(out), "--json", "--workers", "1")
     rep = json.loads(again.stdout)
     assert rep["this_run"] == {"run": 0, "skipped": 8, "failed": 0} and rep["cases"] == 8
+    assert rep["software_versions"] == {cp.software_version(): 8}
+
+
+def test_a_database_of_other_software_is_not_resumed_and_fails_the_report(tmp_path):
+    """Each case records the software that ran it (the ECU's version and the digest of the
+    packages' sources); resuming a database that other code filled would mix two programs'
+    results: refused in one line, and a report over mixed rows fails."""
+    path = write(tmp_path, duration=2, seeds="[1]")
+    out = tmp_path / "run"
+    first = hil("campaign", str(path), "--out", str(out), "--json", "--workers", "1")
+    assert first.returncode in (0, 1), first.stderr[-2000:]
+    version = cp.software_version()
+    assert json.loads(first.stdout)["software_versions"] == {version: 2}
+    assert version.startswith("suspension-") and "+src." in version
+    db = out / "campaign.sqlite"
+    con = sqlite3.connect(db)
+    with con:
+        con.execute("UPDATE cases SET software_version = 'suspension-0.0.9+src.000000000000' "
+                    "WHERE case_id = (SELECT min(case_id) FROM cases)")
+    con.close()
+    again = hil("campaign", str(path), "--out", str(out), "--json")
+    assert again.returncode == 2 and again.stdout == ""
+    err = again.stderr.strip().splitlines()[-1]
+    assert err.startswith("error: ") and "1 case(s) run by other software" in err, err
+    assert "Traceback" not in again.stderr
+    assert "suspension-0.0.9+src.000000000000" in err and "new --out" in err
+    rep = cp.report(db)
+    assert rep["software_versions"] == {"suspension-0.0.9+src.000000000000": 1, version: 1}
+    assert rep["verdict"] == "fail"
+    assert rep["failures_by_criterion"]["one software version (cases of different code)"] == 2
 
 
 def _count(db: Path) -> int:
