@@ -25,22 +25,26 @@ from tests.procutil import children, cmdline
 ROOT = Path(__file__).resolve().parents[1]
 ROUTES = ROOT / "tests" / "routes"
 RECOVER_TICKS = build(default_vehicle()).adc.recover_ticks
-# the campaign runs once: its tests share one xdist worker (make test: --dist loadgroup)
+# the campaign runs once: its tests share one xdist worker (make test: --dist loadgroup), and
+# its result is kept for that worker's session, whenever pytest tears fixtures down
 pytestmark = pytest.mark.hil
 CAMPAIGN = pytest.mark.xdist_group("fault_campaign")
+_CAMPAIGN: dict = {}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def campaign_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("faults")
-    proc = subprocess.run([sys.executable, "-m", "hil", "faults", "-i", "remote", "--json",
-                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    doc = json.loads(proc.stdout)
-    assert doc["verdict"] == "pass" and len(doc["checks"]) == len(doc["results"])
-    assert all(c["ok"] for c in doc["checks"])
-    return out, doc["results"]
+    if "run" not in _CAMPAIGN:
+        out = tmp_path_factory.mktemp("faults")
+        proc = subprocess.run([sys.executable, "-m", "hil", "faults", "-i", "remote", "--json",
+                               "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        doc = json.loads(proc.stdout)
+        assert doc["verdict"] == "pass" and len(doc["checks"]) == len(doc["results"])
+        assert all(c["ok"] for c in doc["checks"])
+        _CAMPAIGN["run"] = (out, doc["results"])
+    return _CAMPAIGN["run"]
 
 
 @CAMPAIGN
@@ -74,6 +78,15 @@ def test_campaign_over_the_bus_meets_the_acceptance(campaign_dir):
             assert r["failsafe_ticks"] == 0, r        # harmless faults do not stop control
         if spec.node == "app":
             assert r["mode_kept"], r                   # spam and bad modes change nothing
+
+
+@CAMPAIGN
+def test_the_group_holds_under_xdist(request):
+    """make test's ``--dist loadgroup`` keeps this group on one worker: its test IDs carry the
+    group. (pytest 9.2 with pytest-xdist 3.8 silently dropped every group, pytest-xdist#1386:
+    the fault campaign ran once per worker; pytest is pinned at 9.1.1 for it.)"""
+    if getattr(request.config.option, "loadgroup", False):
+        assert request.node.nodeid.endswith("@fault_campaign"), request.node.nodeid
 
 
 @CAMPAIGN
