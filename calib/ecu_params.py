@@ -213,7 +213,7 @@ def comfort_total_gain(cfg: VehicleConfig, opts: DesignOptions, model):
     """The comfort design (``calib.linear.comfort_design``, DTD bound
     ``opts.comfort_bound[1]``) with the largest SWS bound that keeps (a) the exact SWS ratio
     of the law as the ECU runs it (``comfort_as_run``: with the PID's leak) at most
-    ``opts.comfort_bound[0]`` (the design's bounds refer to the relative model, whose road
+    ``comfort_sws_top`` (the design's bounds refer to the relative model, whose road
     has no low-frequency cut-off: the exact ratios differ by a few per cent) and (b) a
     static stiffness of at least ``opts.comfort_min_stiffness`` x the spring's
     (k_s + K_SWS, K_SWS the gain on SWS).
@@ -224,7 +224,7 @@ def comfort_total_gain(cfg: VehicleConfig, opts: DesignOptions, model):
     PID took the gains low-passed), which took the default car's SWS to twice passive. Both
     hold below some bound and fail above it: bisection, ten steps (about 1.5 s)."""
     ks = cfg.vehicle.spring_stiffness_n_per_m
-    sws_max, dtd_bound = opts.comfort_bound
+    dtd_bound = opts.comfort_bound[1]
 
     def design(b):
         return comfort_design(model, (b, dtd_bound))
@@ -232,8 +232,8 @@ def comfort_total_gain(cfg: VehicleConfig, opts: DesignOptions, model):
     def ok(r) -> bool:
         if ks + r.K[2] < opts.comfort_min_stiffness * ks:
             return False
-        sws_top = min(sws_max, window_bound(*_comfort_loop(model, r.K, opts), opts)[1])
-        return comfort_as_run(model, r.K, opts)[1] <= sws_top
+        return comfort_as_run(model, r.K, opts)[1] <= comfort_sws_top(
+            window_bound(*_comfort_loop(model, r.K, opts), opts), opts)
 
     lo, hi = COMFORT_BOUND_RANGE
     best = design(hi)
@@ -253,6 +253,14 @@ def comfort_total_gain(cfg: VehicleConfig, opts: DesignOptions, model):
 COMFORT_POLISH_ITER = 60     # SLSQP iterations of the comfort law's polish
 
 
+def comfort_sws_top(wb: np.ndarray, opts: DesignOptions) -> float:
+    """The largest exact SWS ratio the comfort law as run may have: ``opts.comfort_bound[0]``,
+    and exp(-z sigma) (``wb``: ``window_bound`` of the law as run) less the SIL's excess over
+    the law as run (``opts.comfort_sws_sil_excess``), so a drive of ``opts.ratio_window_s``
+    keeps SWS at most 1 with z sigma confidence in the SIL, not only in the linear model."""
+    return min(opts.comfort_bound[0], float(wb[1]) / (1.0 + opts.comfort_sws_sil_excess))
+
+
 def comfort_law(cfg: VehicleConfig, opts: DesignOptions, model) -> np.ndarray:
     """The comfort mode's whole gain (state feedback plus the BP-PID's skyhook): the LQR
     design of ``comfort_total_gain``, polished on the law as the ECU runs it
@@ -264,17 +272,18 @@ def comfort_polish(cfg: VehicleConfig, opts: DesignOptions, model, start: np.nda
                    ) -> np.ndarray:
     """The comfort gain that minimises the exact BA ratio of the law as the ECU runs it
     (``comfort_as_run``) under the bounds of ``comfort_total_gain``, all on that law: SWS at
-    most ``opts.comfort_bound[0]`` and exp(-z sigma), DTD at most ``opts.comfort_bound[1]``,
+    most ``comfort_sws_top``, DTD at most ``opts.comfort_bound[1]``,
     static stiffness at least ``opts.comfort_min_stiffness`` x the spring's. SLSQP on the
     five gains (scaled by the start), from ``start`` (the LQR design, which satisfies them).
 
     The LQR family is optimal for the relative model's variances, not for this problem: the
     PID's leak takes the skyhook off below 0.1 Hz, and the 3 sigma SWS bound moves with the
-    gain. Measured on the SUV with its tyre x0.7 and its damper x1.3 (exact): BA 0.045 and
-    0.044 above their limits from the LQR family, 0.025 polished (docs/campaigns.md).
+    gain. Measured on the SUV with its tyre x0.7 and its damper x1.3 (exact, without the
+    SIL's SWS excess): BA 0.045 and 0.044 above their limits from the LQR family, 0.025
+    polished; with it, 0.055 and 0.033 on the tyre x0.7 (docs/campaigns.md).
     Returns ``start`` if the polish does not end feasible, stable and better."""
     ks = cfg.vehicle.spring_stiffness_n_per_m
-    sws_max, dtd_bound = opts.comfort_bound
+    dtd_bound = opts.comfort_bound[1]
     start = np.asarray(start, dtype=float)
     scale = np.maximum(np.abs(start), 1.0)
     memo: dict = {}
@@ -296,9 +305,9 @@ def comfort_polish(cfg: VehicleConfig, opts: DesignOptions, model, start: np.nda
     def margins(x: np.ndarray) -> np.ndarray:
         v = at(x)
         if v is None:
-            return np.full(4, -1.0)
+            return np.full(3, -1.0)
         r, wb = v
-        return np.array([sws_max - r[1], wb[1] - r[1], dtd_bound - r[2],
+        return np.array([comfort_sws_top(wb, opts) - r[1], dtd_bound - r[2],
                          (ks + x[2] * scale[2]) / ks - opts.comfort_min_stiffness])
 
     def ba(x: np.ndarray) -> float:

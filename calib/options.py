@@ -83,6 +83,11 @@ class DesignOptions:
     # (the loop K_d / (m_s dt) must stay well below 1). DTD keeps a margin to the
     # acceptance's 1.02 (the SIL drives it up to 0.01 above the design)
     comfort_bound: tuple = (0.98, 0.99)
+    # ... and exp(-z sigma) less this: the SIL drives the comfort SWS about 2 % above the law
+    # as run (the SUV with its sprung mass x1.2, unsprung x1.2, tyre x1.3, spring x0.7, seed 8,
+    # B at 20 m/s, 180 s: SIL 1.001-1.004, a linear simulation of the law as run on the same
+    # road 0.983-0.985), which took four of 220 cases of the vehicle family past SWS 1.0
+    comfort_sws_sil_excess: float = 0.02
     comfort_min_stiffness: float = 0.5
     bp_scale_ratio: tuple = (0.03125, 1.0, 6.25e-5)
     bp_eta: float = 0.02
