@@ -150,7 +150,7 @@ def test_realtime_on_vcan0_runs_and_reports_its_figures(tmp_path):
                str(tmp_path), "--json")
     assert proc.returncode in (0, 1), proc.stderr[-3000:]
     rep = json.loads(proc.stdout)
-    assert "incomplete" not in rep
+    assert "incomplete" not in rep, (rep["incomplete"], proc.stderr[-3000:])
     assert_only_timing_failed(proc.returncode, rep, REALTIME_TIMING | {"span_s"})
     rt = rep["bench"]["realtime"]
     assert rep["bench"]["bus"] == "socketcan" and rep["bench"]["pace"] == "realtime"
