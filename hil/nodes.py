@@ -390,6 +390,7 @@ class EcuNode:
         self.resets = 0                     # ECU resets a tester asked for (UDS 0x11)
         self.sha = hashlib.sha256()
         self.rows = array("q")              # per tick: ECU_TRACE
+        self.hashed: Optional[bytearray] = None   # (a bytearray: every tick's hashed row)
 
     def _note(self, faults: int, name: str) -> None:
         self.link_faults |= faults
@@ -544,13 +545,16 @@ class EcuNode:
         self.unrecorded = None
         if None in counts:
             counts = tuple(-1 if c is None else c for c in counts)
-        self.sha.update(_HASHED.pack(    # (in HASHED's order)
+        row = _HASHED.pack(    # (in HASHED's order)
             k, *counts, -1 if speed is None else speed, -1 if supply is None else supply,
             kind, rmode, rid, link_faults,
             out.duty_q15, out.regen, out.enable, out.recommended_mode, out.active_mode,
             out.grade, out.reason, out.faults, out.events, out.override, 0, out.force_cmd_n,
             out.road_est_um, out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
-            out.dtd_rms_um, 0))
+            out.dtd_rms_um, 0)
+        self.sha.update(row)
+        if self.hashed is not None:
+            self.hashed += row
         self.rows.extend((out.road_est_um, out.dtd_est_um, out.force_cmd_n, out.grade,
                           out.active_mode, out.recommended_mode, out.faults, out.enable,
                           out.reason))

@@ -97,12 +97,13 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         progress: Optional[Callable[[int, int], None]] = None,
         on_frame: Optional[Callable[[int, bytes], None]] = None,
         duration_s: Optional[float] = None, fixed_point: bool = False,
-        fx_record: Optional[list] = None, key: Optional[bytes] = None
-        ) -> tuple[dict, SilTrace]:
+        fx_record: Optional[list] = None, key: Optional[bytes] = None,
+        hashed: Optional[bytearray] = None) -> tuple[dict, SilTrace]:
     """Run the SIL. Returns (report dict, per-tick trace). ``on_frame(id, data)`` sees every
     frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
     control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs); ``key``: the
-    SecOC key (default: a new one for this run)."""
+    SecOC key (default: a new one for this run); ``hashed`` (a bytearray) receives every
+    tick's row of the trace hash (``hil.nodes.HASHED``), the per-tick golden traces."""
     check_route(cfg, route)
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
@@ -113,6 +114,7 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         plant.n = min(plant.n, int(round(duration_s / plant.dt)))
     ecu_node = EcuNode(p, codec, lockstep=True, fixed_point=fixed_point,
                        record=fx_record is not None, key=key)
+    ecu_node.hashed = hashed
     app = app_node(codec, mode, p.dt_s, policy, script, key=key)
     bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
     if fx_record is not None:

@@ -55,6 +55,7 @@ class Scenario:
     vehicle: Optional[str] = None   # path relative to the project root (None: Table 3 car)
     fixed_point: bool = False
     duration_s: Optional[float] = None
+    per_tick: bool = False          # the ECU trace is stored tick by tick too (ticks.py)
 
     def command(self) -> str:
         """The ``hil sim`` command line that gives the same trace and bus log."""
@@ -71,20 +72,21 @@ class Scenario:
 
 SCENARIOS = (
     Scenario("full_road_section_auto", "full_road_section", "auto"),
-    Scenario("comfort_b", "tests/golden/routes/b20.toml", "comfort"),
+    Scenario("comfort_b", "tests/golden/routes/b20.toml", "comfort", per_tick=True),
     Scenario("safety_c", "tests/golden/routes/c15.toml", "safety"),
     Scenario("comprehensive_d", "tests/golden/routes/d10.toml", "comprehensive"),
     Scenario("regen_a", "tests/golden/routes/a25.toml", "regen"),
     Scenario("fixed_point_auto", "full_road_section", "auto", fixed_point=True,
-             duration_s=60.0),
+             duration_s=60.0, per_tick=True),
     Scenario("suv_auto", "full_road_section", "auto", vehicle="hil/vehicles/suv.toml"),
 )
 BY_NAME = {s.name: s for s in SCENARIOS}
 
 
-def run(s: Scenario, trace: Optional[list] = None) -> dict:
+def run(s: Scenario, trace: Optional[list] = None, ticks: Optional[list] = None) -> dict:
     """Run one scenario in process as ``hil sim --out`` does; the pinned values. ``trace`` (a
-    list) receives the run's per-tick trace (``hil.sil.SilTrace``)."""
+    list) receives the run's per-tick trace (``hil.sil.SilTrace``), ``ticks`` (a list) the
+    ECU's per-tick inputs and outputs as columns (``tests.golden.ticks``)."""
     from hil import sil
     from hil.buslog import SIL_CHANNEL, BusLogFile, parse_start_time
     from hil.cli import _clean
@@ -97,15 +99,20 @@ def run(s: Scenario, trace: Optional[list] = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         log = BusLogFile(Path(tmp) / "bus.log", SIL_CHANNEL, parse_start_time(START_TIME))
         clock = LockstepClock(cfg.sim.plant_dt_s)
+        hashed = bytearray() if ticks is not None else None
         try:
             report, tr = sil.run(cfg, route, s.mode, s.seed, fixed_point=s.fixed_point,
-                                 duration_s=s.duration_s, key=secoc_key(),
+                                 duration_s=s.duration_s, key=secoc_key(), hashed=hashed,
                                  on_frame=lambda fid, data: log.write(fid, data, clock.stamp(fid)))
         finally:
             log.close()
         buslog_sha = hashlib.sha256(log.path.read_bytes()).hexdigest()
     if trace is not None:
         trace.append(tr)
+    if ticks is not None:
+        from tests.golden import ticks as per_tick
+
+        ticks.append(per_tick.columns(hashed))
     metrics = json.loads(json.dumps(_clean(report)))
     for key in IGNORED_REPORT_KEYS:
         metrics.pop(key, None)

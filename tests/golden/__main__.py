@@ -8,6 +8,7 @@ import sys
 
 import hil  # noqa: F401  (pins OpenBLAS's kernels before numpy loads)
 from tests import golden
+from tests.golden import ticks as per_tick
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,9 +30,19 @@ def main(argv: list[str] | None = None) -> int:
         if not _faults(args.update):
             failed.append(golden.FAULTS)
     for name in names:
-        res = golden.run(golden.BY_NAME[name])
+        s = golden.BY_NAME[name]
+        cols: list = [] if s.per_tick else None
+        res = golden.run(s, ticks=cols)
         got[name] = res
         problems = golden.diff(want.get(name), res) if name in want else ["not in golden.json"]
+        if s.per_tick:
+            # the per-tick trace first: it names the first differing tick and field
+            if args.update:
+                per_tick.save(name, cols[0])
+            elif per_tick.path(name).exists():
+                problems = per_tick.differences(per_tick.load(name), cols[0]) + problems
+            else:
+                problems = [f"no per-tick trace {per_tick.path(name)}"] + problems
         status = "ok" if not problems else ("updated" if args.update else "DIFFERS")
         print(f"{name:24s} {status:8s} trace {res['trace_sha256'][:12]}  "
               f"bus.log {res['buslog_sha256'][:12]}  {res['frames_logged']} frames")
@@ -40,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
             for p in problems:
                 print(f"    {p}")
     if args.update and names:
+        if any(golden.BY_NAME[n].per_tick for n in names):
+            print(f"wrote {per_tick.DIR}")
         order = [s.name for s in golden.SCENARIOS]
         golden.GOLDEN_FILE.write_text(json.dumps({k: got[k] for k in order if k in got},
                                                  indent=1) + "\n")
