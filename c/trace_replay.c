@@ -1,8 +1,17 @@
 /* Replays a recorded trace through the C fixed-point path (tests/test_c_parity.py).
  * stdin, one tick per line: counts[4] (-1: none) k[5*FX_N_MEAS] r[FX_N_MEAS] want passive
  * fault regen reset. stdout, one line per tick: duty force x[5] resid[FX_N_MEAS] integ voltage.
- * Exit 2 on a malformed line. */
+ * Exit 2 on a malformed line.
+ *
+ * `trace_replay --bench R` (make bench's c_core_tick_us): reads the whole trace first, then
+ * runs fx_init and fx_tick over it R times, each run timed alone (CLOCK_MONOTONIC); prints
+ * "ticks N best_ns_per_tick B median_ns_per_tick M checksum C", the checksum folding every
+ * tick's duty and force so that the work cannot be optimised away. Exit 2 on bad arguments. */
+#define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
 
 #include "ecu_fx.h"
 
@@ -11,34 +20,39 @@ static int read_int(long *v)
     return scanf("%ld", v) == 1;
 }
 
-int main(void)
+/* One tick's line into *in: 1 read, 0 end of input, -1 malformed. */
+static int read_tick(fx_in_t *in)
+{
+    long v;
+    int i, ok = 1;
+    if (!read_int(&v)) {
+        return 0;
+    }
+    in->counts[0] = (int32_t)v;
+    for (i = 1; i < 4 && ok; i++) ok = read_int(&v), in->counts[i] = (int32_t)v;
+    for (i = 0; i < 5 * FX_N_MEAS && ok; i++) ok = read_int(&v), in->k[i] = (int32_t)v;
+    for (i = 0; i < FX_N_MEAS && ok; i++) ok = read_int(&v), in->r[i] = (int32_t)v;
+    ok = ok && read_int(&v);
+    in->want = (int)v;
+    ok = ok && read_int(&v);
+    in->passive = (int)v;
+    ok = ok && read_int(&v);
+    in->fault = (int)v;
+    ok = ok && read_int(&v);
+    in->regen = (int)v;
+    ok = ok && read_int(&v);
+    in->reset = (int)v;
+    return ok ? 1 : -1;
+}
+
+static int replay(void)
 {
     fx_state_t s;
     fx_in_t in;
-    long v;
     long ticks = 0;
-    int i;
+    int i, r;
     fx_init(&s);
-    while (read_int(&v)) {
-        int ok = 1;
-        in.counts[0] = (int32_t)v;
-        for (i = 1; i < 4 && ok; i++) ok = read_int(&v), in.counts[i] = (int32_t)v;
-        for (i = 0; i < 5 * FX_N_MEAS && ok; i++) ok = read_int(&v), in.k[i] = (int32_t)v;
-        for (i = 0; i < FX_N_MEAS && ok; i++) ok = read_int(&v), in.r[i] = (int32_t)v;
-        ok = ok && read_int(&v);
-        in.want = (int)v;
-        ok = ok && read_int(&v);
-        in.passive = (int)v;
-        ok = ok && read_int(&v);
-        in.fault = (int)v;
-        ok = ok && read_int(&v);
-        in.regen = (int)v;
-        ok = ok && read_int(&v);
-        in.reset = (int)v;
-        if (!ok) {
-            fprintf(stderr, "trace_replay: malformed tick %ld\n", ticks);
-            return 2;
-        }
+    while ((r = read_tick(&in)) == 1) {
         fx_tick(&s, &in);
         printf("%d %ld", (int)s.duty, (long)s.force);
         for (i = 0; i < 5; i++) printf(" %ld", (long)s.x[i]);
@@ -46,5 +60,95 @@ int main(void)
         printf(" %ld %ld\n", (long)s.integ, (long)s.voltage);
         ticks++;
     }
+    if (r < 0) {
+        fprintf(stderr, "trace_replay: malformed tick %ld\n", ticks);
+        return 2;
+    }
     return 0;
+}
+
+static double now_ns(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
+}
+
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static int bench(long repeats)
+{
+    fx_state_t s;
+    fx_in_t *trace = NULL;
+    double *per_tick;
+    long n = 0, cap = 0, k, rep;
+    unsigned long checksum = 0;
+    int r;
+    for (;;) {
+        if (n == cap) {
+            fx_in_t *grown;
+            cap = cap ? 2 * cap : 4096;
+            grown = realloc(trace, (size_t)cap * sizeof *trace);
+            if (!grown) {
+                fprintf(stderr, "trace_replay: out of memory at tick %ld\n", n);
+                free(trace);
+                return 2;
+            }
+            trace = grown;
+        }
+        r = read_tick(&trace[n]);
+        if (r == 0) break;
+        if (r < 0) {
+            fprintf(stderr, "trace_replay: malformed tick %ld\n", n);
+            free(trace);
+            return 2;
+        }
+        n++;
+    }
+    if (n == 0) {
+        fprintf(stderr, "trace_replay: --bench needs a trace on stdin\n");
+        free(trace);
+        return 2;
+    }
+    per_tick = malloc((size_t)repeats * sizeof *per_tick);
+    if (!per_tick) {
+        free(trace);
+        return 2;
+    }
+    for (rep = 0; rep < repeats; rep++) {
+        double t0 = now_ns();
+        fx_init(&s);
+        for (k = 0; k < n; k++) {
+            fx_tick(&s, &trace[k]);
+            checksum = checksum * 31u + (unsigned long)(uint16_t)s.duty
+                       + (unsigned long)(uint32_t)s.force;
+        }
+        per_tick[rep] = (now_ns() - t0) / (double)n;
+    }
+    qsort(per_tick, (size_t)repeats, sizeof *per_tick, cmp_double);
+    printf("ticks %ld best_ns_per_tick %.2f median_ns_per_tick %.2f checksum %lu\n", n,
+           per_tick[0], per_tick[repeats / 2], checksum);
+    free(per_tick);
+    free(trace);
+    return 0;
+}
+
+int main(int argc, char **argv)
+{
+    if (argc == 1) {
+        return replay();
+    }
+    if (argc == 3 && strcmp(argv[1], "--bench") == 0) {
+        char *end;
+        long repeats = strtol(argv[2], &end, 10);
+        if (*end == '\0' && repeats > 0 && repeats <= 100000) {
+            return bench(repeats);
+        }
+    }
+    fprintf(stderr, "usage: trace_replay [--bench REPEATS] < trace\n");
+    return 2;
 }

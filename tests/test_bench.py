@@ -21,10 +21,19 @@ def test_bench_tool_writes_every_key_of_the_contract(tmp_path):
     data = json.loads(out.read_text())
     assert data == json.loads(res.stdout)
     for key in ("ecu_step_us_p50", "ecu_step_us_p99", "ecu_step_fixed_us_p50",
-                "ecu_step_fixed_us_p99", "sil_rtf", "hil_lockstep_rtf", "ga_tune_s"):
+                "ecu_step_fixed_us_p99", "sil_rtf", "sil_tick_us", "c_core_tick_us",
+                "c_core_tick_us_median", "sil_tick_over_c_core", "hil_sim_2s_wall_s",
+                "hil_lockstep_rtf", "ga_tune_s"):
         assert isinstance(data[key], float) and math.isfinite(data[key]) and data[key] > 0.0, key
     assert data["ecu_step_us_p99"] >= data["ecu_step_us_p50"]
     assert data["ecu_step_fixed_us_p99"] >= data["ecu_step_fixed_us_p50"]
+    assert data["sil_tick_over_c_core"] == data["sil_tick_us"] / data["c_core_tick_us"]
+    assert data["c_core_tick_us_median"] >= data["c_core_tick_us"]
+    assert data["c_core_ticks"] == 2000                       # --quick: a 2 s trace
+    # the stages split the tick: the ECU's, the plant's, the frames' each took some of it
+    stages = data["sil_stage_us"]
+    for key in ("adc", "akf", "fdi", "control", "plant", "frames", "secoc", "nodes"):
+        assert stages[key] > 0.0, (key, stages)
     # the realtime ratio is what the run counted: misses over its 3000 ticks (--quick: 3 s)
     rt = data["realtime"]
     assert data["realtime_missed_deadline_ratio"] == rt["missed_deadline_ratio"]

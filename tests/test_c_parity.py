@@ -6,7 +6,6 @@ our frames to the same bytes as the Python encoder."""
 import dataclasses
 import random
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -25,27 +24,11 @@ from hil.codec import Codec, raw_range
 from hil.config import default_vehicle
 from hil.road import load_route
 from calib import c_tables as tables
+from tools.c_build import C_DIR, GEN, REPLAY_SOURCES, compile_c
+from tools.c_build import replay_input as trace_text
 
 ROOT = Path(__file__).resolve().parents[1]
-C_DIR = ROOT / "c"
-GEN = C_DIR / "generated"
-CFLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
 TRACE_S = 80.0   # full_road_section: A, B, C and the start of D (every controller)
-
-
-def gcc() -> str:
-    cc = shutil.which("gcc")
-    assert cc, "gcc is needed for the C parity tests (Debian: apt-get install gcc)"
-    return cc
-
-
-def compile_c(out: Path, sources, *extra, gen: Path = GEN) -> Path:
-    """``gen``: the directory of the tables header to compile against."""
-    cmd = [gcc(), *CFLAGS, "-O2", f"-I{gen}", f"-I{C_DIR}", *extra, *map(str, sources), "-o",
-           str(out)]
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    assert res.returncode == 0 and not res.stderr, f"{' '.join(cmd)}\n{res.stderr}"
-    return out
 
 
 # ---------------------------------------------------------------- tables
@@ -109,16 +92,7 @@ def test_every_table_constant_is_its_float_to_the_precision_of_its_format():
 @pytest.fixture(scope="module")
 def replay_exe(tmp_path_factory):
     d = tmp_path_factory.mktemp("c")
-    return compile_c(d / "trace_replay", [C_DIR / "ecu_fx.c", C_DIR / "trace_replay.c",
-                                          GEN / "ecu_tables.c"])
-
-
-def trace_text(rec) -> str:
-    def line(i):
-        counts = [-1 if v is None else v for v in i.counts]
-        return " ".join(map(str, [*counts, *i.k_q, *i.r_q, i.want, int(i.passive),
-                                  int(i.fault), int(i.regen), int(i.reset)]))
-    return "\n".join(line(i) for i, _ in rec) + "\n"
+    return compile_c(d / "trace_replay", REPLAY_SOURCES)
 
 
 @pytest.mark.slow
@@ -188,6 +162,37 @@ def test_c_fixed_point_path_is_bit_exact_with_bump_stops_and_lift_off(tmp_path):
 def test_c_replay_rejects_a_malformed_trace(replay_exe):
     res = subprocess.run([str(replay_exe)], input="1 2 3\n", capture_output=True, text=True)
     assert res.returncode == 2 and "malformed" in res.stderr
+    for args, text in ((["--bench", "3"], "1 2 3\n"), (["--bench", "3"], ""),
+                       (["--bench", "0"], "1\n"), (["--bench"], "1\n"), (["-x", "1"], "")):
+        res = subprocess.run([str(replay_exe), *args], input=text, capture_output=True,
+                             text=True)
+        assert res.returncode == 2, (args, res.stderr)
+        assert res.stderr.startswith(("trace_replay: ", "usage: ")), (args, res.stderr)
+
+
+def test_c_replay_bench_times_the_same_ticks(replay_exe):
+    """--bench (make bench's c_core_tick_us) runs the trace it read: its checksum folds every
+    tick's duty and force, the same in every repetition."""
+    rec = []
+    sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1, fixed_point=True,
+            fx_record=rec, duration_s=2.0)
+    text = trace_text(rec)
+    checksum = 0
+    for _, out in rec:
+        checksum = (checksum * 31 + (out[0] & 0xFFFF) + (out[1] & 0xFFFFFFFF)) % 2 ** 64
+    for repeats in (1, 3):
+        res = subprocess.run([str(replay_exe), "--bench", str(repeats)], input=text,
+                             capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+        words = res.stdout.split()
+        assert words[0::2] == ["ticks", "best_ns_per_tick", "median_ns_per_tick", "checksum"]
+        assert int(words[1]) == len(rec) == 2000
+        assert 0 < float(words[3]) <= float(words[5])
+        want = checksum
+        for _ in range(repeats - 1):      # (the checksum runs on across the repetitions)
+            for _, out in rec:
+                want = (want * 31 + (out[0] & 0xFFFF) + (out[1] & 0xFFFFFFFF)) % 2 ** 64
+        assert int(words[7]) == want
 
 
 # ---------------------------------------------------------------- cantools C
