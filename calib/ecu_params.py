@@ -18,6 +18,7 @@ import numpy as np
 from scipy.linalg import expm
 from scipy.optimize import minimize
 
+from calib import cache
 from calib.errors import ConfigError
 from calib.galqr import tune, vehicle_digest
 from calib.iso8608 import CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M
@@ -432,9 +433,16 @@ def comprehensive_gain(cfg: VehicleConfig, opts: DesignOptions, gains_file: Path
 def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
           gains_file: Path | None = None) -> fp.EcuParams:
     """The ECU's calibration for ``cfg``; a vehicle it cannot be designed for (no
-    stabilising LQR, a non-finite design) is a ConfigError with the reason."""
+    stabilising LQR, a non-finite design) is a ConfigError with the reason. Kept in the
+    design cache (``calib.cache``) under every input: the vehicle as parsed, the options, the
+    gains file's bytes, the design code."""
+    opts = opts or DesignOptions()
+    gains = Path(gains_file or default_gains_path(cfg))
+    parts = (repr(cfg).encode(), json.dumps(dataclasses.asdict(opts), sort_keys=True).encode(),
+             str(gains_file is not None).encode(),
+             gains.read_bytes() if gains.is_file() else b"<no gains file: tuned at build time>")
     try:
-        return _build(cfg, opts, gains_file)
+        return cache.cached("ecu_params", parts, lambda: _build(cfg, opts, gains_file))
     except (ValueError, np.linalg.LinAlgError) as exc:
         raise ConfigError(f"{cfg.source}: no ECU calibration for this vehicle: {exc}") from None
 

@@ -6,8 +6,11 @@ tanh table. Design-time: the firmware receives the finished tables (and C the sa
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 
+from calib import cache
 from firmware.actuator import CURRENT_MARGIN
 from firmware.control.bppid import FORCE_REF_N
 from firmware.fixedpoint import best_frac, to_fixed
@@ -70,6 +73,12 @@ def tanh_lut() -> tuple:
 
 
 def build_tables(p: EcuParams) -> FxTables:
+    """The fixed-point path's constants for calibration ``p`` (kept in the design cache,
+    ``calib.cache``, under the calibration's pickled bytes and the design code)."""
+    return cache.cached("fx_tables", (pickle.dumps(p, protocol=5),), lambda: _build_tables(p))
+
+
+def _build_tables(p: EcuParams) -> FxTables:
     pl, c, act, a = p.plant, p.control, p.actuator, p.akf
     m = a.H.shape[0]
     chans = (p.adc.body_accel, p.adc.wheel_accel, p.adc.susp_defl, p.adc.motor_current)

@@ -16,9 +16,16 @@ from __future__ import annotations
 import argparse
 
 from hil import config, verdict
-from hil.cli import (add_design_argument, add_json_argument, add_log_arguments,
-                     add_vehicle_argument,
+from hil.cli import (add_cache_argument, add_design_argument, add_json_argument,
+                     add_log_arguments, add_vehicle_argument, apply_cache_argument,
                      positive_float, route_or_exit, seed_arg, vehicle_or_exit)
+
+# the commands whose options include python-can's bus options: their parsers import can,
+# which imports every log format's library (asammdf and pandas: a quarter second); for any
+# other command they are not built (unless the command is unknown or help is asked for)
+BUS_COMMANDS = ("run", "plant", "ecu", "app", "faults", "diag")
+OTHER_COMMANDS = ("drive", "routes", "logdiff", "alarms", "keygen", "cache", "campaign",
+                  "campaign-case", "campaign-report", "sim")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,12 +60,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("reference", metavar="LOG")
     p.add_argument("other", metavar="LOG")
     add_json_argument(p)
-    from hil import alarms, diag
+    from hil import alarms
 
-    diag.add_parser(sub)
+    bus_parsers = not (argv[:1] and argv[0] in OTHER_COMMANDS)
+    if bus_parsers:
+        from hil import diag
+
+        diag.add_parser(sub)
     alarms.add_parser(sub)
     p = sub.add_parser("keygen", help="write a new SecOC key file (16 random bytes, mode 0600)")
     p.add_argument("file", metavar="FILE")
+    p = sub.add_parser("cache", help="the design cache (calib/cache.py): where it is and what "
+                                     "it holds; --clear empties it")
+    p.add_argument("--clear", action="store_true")
+    add_json_argument(p)
     p = sub.add_parser("campaign", help="a validation campaign (a matrix of SIL cases) on "
                                         "Dask, results in SQLite (hil/campaign.py)")
     p.add_argument("file", metavar="FILE.toml")
@@ -69,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="local: worker processes (default: one per core)")
     p.add_argument("--out", metavar="DIR", help="database and report (default: "
                    "out/campaign/NAME)")
+    add_cache_argument(p)
     add_json_argument(p)
     p = sub.add_parser("campaign-case", help="run one case of a campaign database again "
                                              "(the reproduce column of campaign-report)")
@@ -102,8 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     add_json_argument(p)
     verdict.add_arguments(p)
     _driver_arguments(p)
-    _node_parsers(sub)
+    if bus_parsers:
+        _node_parsers(sub)
     args = parser.parse_args(argv)
+    apply_cache_argument(args)
 
     if args.command == "sim":
         return _sim(args)
@@ -129,6 +147,21 @@ def main(argv: list[str] | None = None) -> int:
         from hil import alarms, diag
 
         return (diag if args.command == "diag" else alarms).main(args)
+    if args.command == "cache":
+        from calib import cache
+        from hil.cli import emit
+
+        removed = cache.clear() if args.clear else 0
+        entries = sorted(cache.directory().rglob("*.pickle")) if cache.directory().is_dir() \
+            else []
+        info = {"directory": str(cache.directory()), "enabled": cache.enabled(),
+                "entries": len(entries), "bytes": sum(p.stat().st_size for p in entries),
+                "removed": removed}
+        emit(info, args.json, lambda r: print(
+            f"design cache {r['directory']}: {r['entries']} entries, {r['bytes']} bytes"
+            + (f" ({r['removed']} removed)" if args.clear else "")
+            + ("" if r["enabled"] else "; off in this environment (SUSPENSION_NO_CACHE)")))
+        return 0
     if args.command == "keygen":
         from hil import secoc
         from hil.cli import fail
@@ -294,6 +327,7 @@ def _node_parsers(sub) -> None:
     add_bus_arguments(p)
     p.add_argument("--out", metavar="DIR", default="out/faults",
                    help="bus.log, node records and faults.json (default: out/faults)")
+    add_cache_argument(p)
     add_json_argument(p)
     verdict.add_arguments(p)
 

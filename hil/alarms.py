@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Optional
 
 from hil import verdict
+from hil.cli import add_cache_argument
 
 DEFAULT_VEHICLES = ("table3.toml", "suv.toml")
 DEFAULT_SPEEDS = (10.0, 20.0, 30.0)
@@ -176,6 +177,7 @@ def add_parser(sub) -> None:
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                    help="parallel processes (default: one per core)")
     p.add_argument("--out", metavar="DIR", help="write DIR/alarms.json")
+    add_cache_argument(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 

@@ -31,6 +31,24 @@ def add_design_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--design", metavar="FILE", default=None,
                         help="design options TOML ([design] table; calib.options; default: "
                              "the documented defaults)")
+    add_cache_argument(parser)
+
+
+def add_cache_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-cache", action="store_true",
+                        help="compute the calibration anew, neither reading nor writing the "
+                             "design cache (calib/cache.py; SUSPENSION_NO_CACHE=1 does the "
+                             "same, and reaches the processes this one starts)")
+
+
+def apply_cache_argument(args: argparse.Namespace) -> None:
+    """``--no-cache``: off for this process and every process it starts (the environment)."""
+    if getattr(args, "no_cache", False):
+        import os
+
+        from calib import cache
+
+        os.environ[cache.ENV_OFF] = "1"
 
 
 def add_log_arguments(p: argparse.ArgumentParser) -> None:

@@ -6,7 +6,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import bilinear_zpk, lfilter, zpk2tf
 
 
 def rms(x: np.ndarray) -> float:
@@ -47,6 +46,8 @@ def wk_analog() -> tuple[np.ndarray, np.ndarray]:
 
 def wk_digital(fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear-transform W_k at sample rate ``fs_hz``."""
+    from scipy.signal import bilinear_zpk, zpk2tf   # (here: its import takes half a second)
+
     b, a = wk_analog()
     z, p, k = np.roots(b), np.roots(a), b[0] / a[0]
     zd, pd, kd = bilinear_zpk(z, p, k, fs_hz)
@@ -55,6 +56,8 @@ def wk_digital(fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def wk_weighted_rms(accel_mps2: np.ndarray, fs_hz: float) -> float:
+    from scipy.signal import lfilter
+
     b, a = wk_digital(fs_hz)
     return rms(lfilter(b, a, np.asarray(accel_mps2, dtype=float)))
 

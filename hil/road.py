@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from calib.errors import ConfigError, read_toml
 from hil.config import PACKAGE_DIR
+from hil.kernels.road import ar1
 
 from calib.iso8608 import (CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, GRADES, N0_PER_M,  # noqa: F401
                            convention_factor, gq_of, grade_of, road_noise_gain)
@@ -251,7 +251,7 @@ def generate_profile(route: Route, seed: int) -> RoadProfile:
     xi = rng.standard_normal(n)
     drive = step_std * xi
     drive[0] = stationary_std * xi[0]
-    heights = lfilter([1.0], [1.0, -phi], drive)
+    heights = ar1(drive, phi)
     return RoadProfile(dx, heights, route, seed)
 
 
