@@ -148,7 +148,8 @@ def _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, lifted):
     if abs(defl) > F.valid_defl_m or lifted:
         st.invalid_until = tick + F.hold_ticks    # the linear model does not hold here
     dF = force_meas - st.force_prev
-    var_f = (abs(force_meas) * F.force_band) ** 2 / 12.0 + 0.25 * dF * dF
+    band = abs(force_meas) * F.force_band     # (squares as products: the compiled tick's bits)
+    var_f = band * band / 12.0 + 0.25 * dF * dF
     st.force_prev = force_meas
     if tick <= st.invalid_until:                  # the statistics hold meanwhile
         return 0, 0
@@ -233,7 +234,8 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
                 ip, lim, var = 0.0, False, F.cur_sigma_a ** 2
             elif emf_adv is not None:
                 ip, lim = _winding(P, st.i1, volt, emf_adv, v_dc)
-                var = F.act_var + (0.5 * b * kdt * da) ** 2
+                adv = 0.5 * b * kdt * da
+                var = F.act_var + adv * adv
             else:
                 continue
             r = i_meas - ip
