@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 # the main job's case (make run, make vcan-run)
 SIM_ARGS := --route full_road_section --mode auto --seed 1
 
-.PHONY: setup run test test-fast lint bench tables tables-check clean \
+.PHONY: setup run test test-fast lint jit bench tables tables-check clean \
         vcan-setup vcan-run vcan-shell vcan-test
 
 setup: $(STAMP)
@@ -23,8 +23,13 @@ run: $(STAMP)
 
 # the whole suite: the layer contracts, then every test (HIL, golden traces and slow ones too);
 # the 15 slowest are listed at the end (where CI time goes)
-test: lint
+test: lint jit
 	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=15
+
+# numba's cache filled before the processes that load it start (tools/jit.py): the compiled
+# tick takes about a minute to compile cold, tens of milliseconds to load
+jit: $(STAMP)
+	$(PY) -m tools.jit
 
 # the unit tier: no HIL, no golden traces, no long simulation (a minute or so on a warm machine)
 test-fast: lint
@@ -76,7 +81,7 @@ vcan-shell: $(STAMP) vcan-setup
 	$(PY) -m hil vcan
 
 # the tests that make sense on vcan0 (marker vcan), in UML
-vcan-test: $(STAMP) vcan-setup
+vcan-test: $(STAMP) vcan-setup jit
 	$(PY) -m hil vcan --timeout 3000 -- $(PY) -m pytest -q -p no:cacheprovider -m vcan --durations=0
 
 clean:

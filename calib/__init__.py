@@ -11,9 +11,12 @@ scipy allowed. Layers (import-linter contracts in ``pyproject.toml``): ``firmwar
 - ``fx_tables``: the fixed-point path's constants; ``c_tables``: the C99 tables;
 - ``iso8608``: road grades and the PSD convention; ``errors``: ``ConfigError``;
 - ``blas``: pins OpenBLAS's kernels (the same bytes on every x86-64 host), run on import,
-  before numpy loads.
+  before numpy loads; ``jitcache``: numba's cache directory, keyed by the compiled sources;
+  ``cache``: the design cache (calibrations kept on disk).
 """
 
 from calib import blas as _blas
+from calib import jitcache as _jitcache
 
 _blas.pin()      # before numpy loads (calib.blas)
+_jitcache.pin()  # before numba loads: its cache keyed by the compiled sources (calib.jitcache)

@@ -138,11 +138,15 @@ def _store(path: Path, value) -> None:
 
 
 def clear() -> int:
-    """Remove every entry; returns how many."""
+    """Remove every entry (and numba's compiled code kept beside them, ``calib.jitcache``);
+    returns how many entries."""
+    import shutil
+
     n = 0
     base = directory()
     if base.is_dir():
         for p in base.rglob("*.pickle"):
             p.unlink(missing_ok=True)
             n += 1
+        shutil.rmtree(base / "numba", ignore_errors=True)
     return n

@@ -617,7 +617,7 @@ def fdi_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.FdiParams:
         supply_low_v=SUPPLY_LOW_RATIO * ap.bus_voltage_v,
         supply_high_v=SUPPLY_HIGH_RATIO * ap.bus_voltage_v,
         settle_ticks=int(round(FDI_SETTLE_S / dt)),
-        clip=FDI_CLIP_SIGMAS ** 2, actuator_verdicts=FDI_ACTUATOR_VERDICTS,
+        clip_sq=FDI_CLIP_SIGMAS ** 2, actuator_verdicts=FDI_ACTUATOR_VERDICTS,
         nis_verdicts=FDI_NIS_VERDICTS)
 
 

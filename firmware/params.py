@@ -220,6 +220,6 @@ class FdiParams:
     supply_low_v: float          # the operating range of the supply
     supply_high_v: float
     settle_ticks: int            # no test verdict before this tick (estimator start-up)
-    clip: float                  # a normalised square enters the EWMAs at most this large
+    clip_sq: float               # a normalised square enters the EWMAs at most this large
     nis_verdicts: tuple[bool, ...]  # which innovation tests report (BA, SWS, WA)
     actuator_verdicts: bool      # the actuator test reports (off: it runs, never fails)

@@ -38,7 +38,7 @@ from firmware import ecu, safety
 from firmware.diag import uds
 from firmware.modes import REASON_NONE
 from firmware import params as fp
-from firmware.path import FixedPath
+from firmware.tick import Ecu
 from hil import secoc
 from hil.codec import Codec, fault_signals, fault_word
 from hil.config import VehicleConfig
@@ -346,10 +346,8 @@ class EcuNode:
                  fixed_point: bool = False, record: bool = False, key: Optional[bytes] = None):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
-        # the arithmetic path (a new one after an ECU reset, UDS 0x11)
-        self.new_path = (lambda: FixedPath(params, build_tables(params), record)) \
-            if fixed_point else (lambda: None)
-        self.state = ecu.init(params, self.new_path())
+        # the compiled ECU (firmware.tick), on the fixed-point path with its tables
+        self.state = Ecu(params, build_tables(params) if fixed_point else None, record)
         self.tx = Tx(codec, allowed=safety.TX_MESSAGES)
         # (with SecOC the CHECKSUM is written once, after the MAC: Sender.protect)
         self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"),
@@ -465,7 +463,7 @@ class EcuNode:
     def _diag_out(self, frames: list[Frame]) -> list[Frame]:
         self.tx.sent["DIAG_RESPONSE"] += len(frames)
         if self.state.diag.reset_requested:
-            self.state = ecu.reset(self.state, self.new_path())
+            self.state.reset()
             self.resets += 1
         return frames
 
@@ -495,7 +493,7 @@ class EcuNode:
         kind, rmode, rid = self.req
         link_faults = self.link_faults
         inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults, supply)
-        self.state, out = ecu.step(self.state, inp)
+        out = self.state.step(inp)
         self.k += 1
         self.link_faults = 0
         # the command first (realtime sends it first; the plant waits for it), then the rest
@@ -563,12 +561,12 @@ class EcuNode:
         self.record()
         return {"node": "ecu", "ticks": self.k, "frames_sent": dict(self.tx.sent),
                 "trace_sha256": self.sha.hexdigest(),
-                "akf_r_guard_hits": self.state.akf.guard_hits,
+                "akf_r_guard_hits": self.state.guard_hits,
                 "frame_faults": dict(self.frame_faults),
-                "arithmetic": self.state.path.name,
+                "arithmetic": self.state.arithmetic,
                 "uds_requests": self.uds.requests if self.uds else 0,
                 "isotp_errors": self.uds.errors if self.uds else 0, "ecu_resets": self.resets,
-                "fx_gain_saturations": self.state.path.gain_saturations}
+                "fx_gain_saturations": self.state.gain_saturations}
 
     def trace(self) -> dict:
         self.record()
@@ -788,12 +786,15 @@ def warm_up(node, ticks: int = 30) -> None:
     loads a kernel from its cache (or compiles it) on its first call, 0.2 s for the first one
     in a process, and Python's first pass through a path is slower; in realtime pacing both
     would be missed deadlines at the start. The plant copy steps with an enabled command; the
-    ECU copy gets valid sensor and speed frames (so the estimator, grade, modes, controller
-    and actuator paths all run) and one tick without a sensor frame, then every controller
-    runs once. The node itself is untouched (the same bytes on the bus afterwards)."""
+    ECU copy gets valid sensor and speed frames and one tick without a sensor frame (its
+    compiled tick, ``firmware.tick``, is one function: the first call loads all of it). The
+    node itself is untouched (the same bytes on the bus afterwards)."""
     shared = {id(node.codec): node.codec}
     if hasattr(node, "params"):             # the calibration: the same arrays (and layouts)
         shared[id(node.params)] = node.params
+    for rec in (getattr(getattr(node, "state", None), name, None) for name in ("P", "T")):
+        if rec is not None:                 # (its records: read-only, a copy is not)
+            shared[id(rec)] = rec
     if getattr(node, "inject", None) is not None:
         shared[id(node.inject)] = node.inject
     if hasattr(node, "sha"):
@@ -818,5 +819,4 @@ def warm_up(node, ticks: int = 30) -> None:
                 w.record()
         w.pending.append(MISSING)
         w.tick()
-        w.record()
-        w.state.path.warm_up(w.state)   # every controller (the modes above may not reach all)
+        w.record()      # (the tick is one compiled function: every controller came with it)

@@ -118,7 +118,7 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     app = app_node(codec, mode, p.dt_s, policy, script, key=key)
     bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
     if fx_record is not None:
-        fx_record.extend(ecu_node.state.path.log)
+        fx_record.extend(ecu_node.state.log)
     trace = merge_traces(plant.dt, plant.trace(), ecu_node.trace())
     report = build_report(cfg, route, mode, controller, seed, trace, plant.summary(),
                           ecu_node.summary(), app.summary())

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from calib import ecu_params
+from calib import cache, ecu_params
 from hil import alarms
 from hil.road import load_route
 
@@ -52,6 +52,7 @@ def test_the_command_fails_when_the_tests_alarm(monkeypatch):
     """Sabotage: a false-alarm probability of 0.5 per window puts the innovation tests' level
     near the noise itself; the measurement must see it and the verdict fail."""
     monkeypatch.setattr(ecu_params, "FDI_FALSE_ALARM", 0.5)
+    monkeypatch.setenv(cache.ENV_OFF, "1")     # (a design constant patched: not the cache's)
     doc = alarms.summarise(alarms.measure(alarms.cases(["city"], ["table3.toml"], [20.0], [1],
                                                        duration_s=5.0), jobs=1))
     assert doc["detections"] > 0 and doc["verdict"] == "fail"

@@ -217,15 +217,17 @@ def test_the_comfort_law_as_run_is_the_design_without_the_leak():
     assert run[1] > exact[1] + 0.01
 
 
-def test_a_process_designs_each_vehicle_once_and_nobody_changes_the_design():
+def test_a_process_designs_each_vehicle_once_and_nobody_changes_the_design(monkeypatch):
     """calib.ecu_params keeps the feedback designs per process: a second build of the same
     vehicle and options gives equal gains without designing again, the kept arrays are
-    read-only, and other options design anew."""
+    read-only, and other options design anew. (The design cache on disk off: it would serve
+    both builds, each a fresh copy; tests/test_cache.py has its own tests.)"""
     import dataclasses
 
-    from calib import ecu_params
+    from calib import cache, ecu_params
     from calib.options import DesignOptions
 
+    monkeypatch.setenv(cache.ENV_OFF, "1")
     ecu_params._feedback_designs.cache_clear()
     first = ecu_params.build(SUV, DesignOptions())
     again = ecu_params.build(SUV, DesignOptions())

@@ -61,27 +61,28 @@ def cpu_model() -> str:
 
 
 def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
-    """Wall time of every firmware.ecu.step call inside a SIL run (comfort-heavy auto route)."""
-    from firmware import ecu
-    from hil import nodes, sil
+    """Wall time of every ECU step (``firmware.tick.Ecu.step``: the compiled tick and its
+    call from Python) inside a SIL run (comfort-heavy auto route)."""
+    from firmware.tick import Ecu
+    from hil import sil
     from hil.config import default_vehicle
     from hil.road import load_route
 
     times: list[int] = []
-    real = ecu.step
+    real = Ecu.step
 
-    def timed(st, inp):
+    def timed(self, inp):
         t0 = time.perf_counter_ns()
-        out = real(st, inp)
+        out = real(self, inp)
         times.append(time.perf_counter_ns() - t0)
         return out
 
-    nodes.ecu.step = timed
+    Ecu.step = timed
     try:
         sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
                 duration_s=duration_s, fixed_point=fixed_point)
     finally:
-        nodes.ecu.step = real
+        Ecu.step = real
     return np.array(times[100:], dtype=float) / 1000.0
 
 
@@ -175,21 +176,14 @@ def c_core_tick_us(duration_s: float, repeats: int, tmp: Path) -> dict:
 
 
 # where a SIL tick's time goes: the profiled functions' own time, grouped by the file they
-# are in (the first matching prefix of the path below the project root)
+# are in (the first matching prefix of the path below the project root); the compiled tick is
+# one entry (cProfile does not see inside it)
 STAGES = (
-    ("adc", ("firmware/adc.py",)),
-    ("akf", ("firmware/akf.py", "firmware/kernels/akf.py", "firmware/path.py")),
-    ("fixed_point", ("firmware/fx/", "firmware/control/fx/")),
-    ("fdi", ("firmware/diag/fdi.py",)),
-    ("dtc", ("firmware/diag/",)),
-    ("grade", ("firmware/grade.py", "firmware/kernels/grade.py")),
-    ("modes", ("firmware/modes.py",)),
-    ("control", ("firmware/control/", "firmware/kernels/bppid.py")),
-    ("actuator", ("firmware/actuator.py",)),
-    ("ecu_step", ("firmware/",)),
+    ("ecu_tick", ("firmware/tick/", "firmware/kernels/")),   # the compiled tick (opaque)
+    ("frames", ("hil/codec.py", "firmware/safety.py")),
+    ("ecu_python", ("firmware/",)),                          # firmware Python on the path
     ("plant", ("hil/plant.py", "hil/kernels/plant.py")),
     ("sensors", ("hil/sensors.py", "hil/kernels/sensors.py")),
-    ("frames", ("hil/codec.py", "firmware/safety.py")),
     ("secoc", ("hil/secoc.py",)),
     ("nodes", ("hil/nodes.py",)),
 )

@@ -153,7 +153,7 @@ def _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, lifted):
     st.force_prev = force_meas
     if tick <= st.invalid_until:                  # the statistics hold meanwhile
         return 0, 0
-    lam, clip = F.nis_lambda, F.clip
+    lam, clip = F.nis_lambda, F.clip_sq
     for j in range(len(eps)):
         d = A.D.item(j)
         s = hph[j] * rho + A.r0.item(j, j) + d * d * var_f
@@ -241,7 +241,7 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
             r = i_meas - ip
             if r * r / var < v:
                 verdict, v, limited, used = True, r * r / var, lim, (volt, enabled)
-            if v <= F.clip:
+            if v <= F.clip_sq:
                 break
         emf = emf_adv
     # the EMF over the step that ended: from the current's response where it follows the
@@ -257,7 +257,7 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
     else:
         volt = st.v1 if st.en1 else None
     quiet = F.open_ratio * F.cur_sigma_a
-    outlier = verdict and v > F.clip
+    outlier = verdict and v > F.clip_sq
     if outlier and st.emf_weak and abs(i_meas) >= quiet:
         verdict = outlier = False
     if volt is not None and live and st.live1 and not (at_limit or outlier):
@@ -275,7 +275,7 @@ def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
         st.act_latched, st.act, st.act_onset = 0, 1.0, -1
     if not (verdict and model_ok and math.isfinite(v)):
         return 0, 0
-    st.act += F.act_lambda * (min(v, F.clip) - st.act)
+    st.act += F.act_lambda * (min(v, F.clip_sq) - st.act)
     if not (settled and F.actuator_verdicts):
         return 0, 0
     if st.act <= F.act_threshold:

@@ -19,3 +19,8 @@ import numba
 
 def njit(fn):
     return numba.njit(cache=True, error_model="numpy", fastmath=False)(fn)
+
+
+# NUMBA_DISABLE_JIT=1: the interpreter runs every kernel, and reads a record's fields as
+# attributes only through numpy's recarray (firmware.tick.layout)
+INTERPRETED = bool(numba.config.DISABLE_JIT)

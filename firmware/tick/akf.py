@@ -1,0 +1,149 @@
+"""Stage 2 in float, compiled: the adaptive Kalman filter's tick (``firmware.akf`` says what
+it computes; the arithmetic is ``firmware.kernels.akf``'s) with the known force from the
+measured current and the bump stops, and the forces off the linear model as process noise
+(``firmware.path.off_model``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from firmware.akf import SKIP_SCALE
+from firmware.kernels import akf as kern
+from firmware.kernels import njit
+from firmware.tick import adc
+
+MEASURED = (adc.BA, adc.DEFL, adc.WA)     # the filter's z, in its order
+
+
+def state_dtype(m: int) -> np.dtype:
+    return np.dtype([
+        ("x", "f8", (5,)), ("P", "f8", (5, 5)), ("R", "f8", (m, m)), ("r", "f8", (m,)),
+        ("b_pow", "f8"),                   # b^(t+1)
+        ("innovation", "f8", (m,)),
+        ("hph", "f8", (m,)),               # diag(H P_pred H^T) of the last correction
+        ("guard_hits", "i8"),              # how often the R-hat guard acted
+        ("R_saved", "f8", (m, m)),         # (R-hat while a held measurement's is scaled)
+    ])
+
+
+@njit
+def init(A, S) -> None:
+    """The filter's start (and its restart after a non-finite estimate)."""
+    S.x[:] = 0.0
+    S.P[:, :] = A.p0
+    S.R[:, :] = A.r0
+    S.r[:] = 0.0
+    S.b_pow = A.forgetting
+    S.innovation[:] = 0.0
+    S.hph[:] = 0.0
+    S.guard_hits = 0
+
+
+@njit
+def bump_force(A, defl: float) -> float:
+    """The bump stops' force on the body at the measured stroke (0 inside the clearance)."""
+    if A.bump_stiffness == 0.0:
+        return 0.0
+    if defl > A.bump_clearance_m:
+        return -A.bump_stiffness * (defl - A.bump_clearance_m)
+    if defl < -A.bump_clearance_m:
+        return -A.bump_stiffness * (defl + A.bump_clearance_m)
+    return 0.0
+
+
+@njit
+def airborne(A, ms: float, mt: float, ba: float, wa: float) -> bool:
+    """The tyre force measured by the accelerometers is within ``lift_sigmas`` of its noise
+    from zero (or below)."""
+    return A.tyre_load_n + ms * ba + mt * wa < A.lift_sigmas * A.tyre_force_sigma_n
+
+
+@njit
+def _add_outer(P, s2: float, g) -> None:
+    """P += s2 outer(g, g), as numpy computes it (the outer product, then the scale)."""
+    for i in range(5):
+        for j in range(5):
+            P[i, j] = P[i, j] + s2 * (g[i] * g[j])
+
+
+@njit
+def unknown_forces(A, S, lifted: bool, current_unknown: bool, stroke_unknown: bool) -> None:
+    """Process noise for the forces the model does not know this tick (``firmware.akf``)."""
+    if lifted and A.lift_force_sigma_n > 0.0:
+        _add_outer(S.P, A.lift_force_var, A.gamma_wheel)
+    s2 = (A.current_force_var if current_unknown else 0.0) + (
+        A.stroke_force_var if stroke_unknown else 0.0)
+    if s2 > 0.0:
+        _add_outer(S.P, s2, A.gamma)
+
+
+@njit
+def off_model(P, S, ba: float, wa: float):
+    """The covariance side of a tick off the linear model (``firmware.path.off_model``):
+    returns (R-hat may adapt, the bits of the measurements held: z indices)."""
+    current_known = adc.measured(S.adc, adc.CUR)
+    stroke_known = adc.measured(S.adc, adc.DEFL)
+    lifted = airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa) and P.akf.lift_force_sigma_n > 0
+    unknown_forces(P.akf, S.akf, lifted, not current_known, not stroke_known)
+    held = 0
+    for j in range(3):
+        if S.adc.faulty[MEASURED[j]]:
+            held |= 1 << j
+    adapt = (current_known and stroke_known and not lifted
+             and adc.measured(S.adc, adc.BA) and adc.measured(S.adc, adc.WA))
+    return adapt, held
+
+
+@njit
+def tick(A, S, u_tick: float, road_intensity: float, ba: float, defl: float, wa: float,
+         u_now: float, adapt: bool, held: int) -> bool:
+    """Predict and correct with z = [ba, defl(, wa)]; R-hat adapts only where ``adapt`` and
+    no measurement is held; a held one's noise is SKIP_SCALE times R-hat's for this tick.
+    Returns whether the new state is finite."""
+    m = S.R.shape[0]
+    skip = held & ((1 << m) - 1)
+    if skip:
+        S.R_saved[:, :] = S.R
+        for j in range(m):
+            if (skip >> j) & 1:
+                S.R[j, j] *= SKIP_SCALE
+    S.b_pow, hit, finite = kern.tick_into(
+        A.phi, A.gamma, A.q_unit, A.H, A.D, S.P, S.R, S.r, S.x, u_tick, road_intensity, ba,
+        defl, wa, u_now, A.r_floor, A.r_scale, S.b_pow, A.forgetting,
+        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive), S.innovation, S.hph)
+    if skip:
+        S.R[:, :] = S.R_saved
+    S.guard_hits += hit
+    return finite
+
+
+@njit
+def estimate(P, S, ba: float, wa: float, defl: float, i_meas: float,
+             road_intensity: float):
+    """The float path's stage 2 (``firmware.path.FloatPath.estimate``): the force from the
+    measured current (the direction picks the efficiency), the known force, predict and
+    correct. Returns (force_meas, finite)."""
+    pl = P.plant
+    rel_prev = S.akf.x[0] - S.akf.x[1]
+    g = pl.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / pl.efficiency
+    force_meas = g * pl.force_constant * i_meas
+    known = force_meas + bump_force(P.akf, defl)
+    adapt, held = off_model(P, S, ba, wa)
+    finite = tick(P.akf, S.akf, 0.5 * (S.ctl.force_known_prev + known), road_intensity, ba,
+                  defl, wa, known, adapt, held)
+    S.ctl.force_known_prev = known
+    return force_meas, finite
+
+
+@njit
+def road_per_mps(P, gq: float) -> float:
+    """The filter's road intensity per m/s (``firmware.ecu._road_per_mps``): the grade's G_q
+    once there is one, within [G_q,A / 2, the nominal]."""
+    if P.akf_q_follows_grade and math.isfinite(gq):
+        lo, hi = P.grade.gq_centres[0] * 0.5, P.akf_q_gq_nominal
+        g = lo if lo > gq else gq
+        g = g if g < hi else hi
+        return P.akf.road_intensity_per_mps * g / P.akf_q_gq_nominal
+    return P.akf.road_intensity_per_mps

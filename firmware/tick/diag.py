@@ -1,0 +1,109 @@
+"""The compiled ECU's diagnostic memory seen from Python, between ticks: the UDS server
+(``firmware.diag.uds``), a new operation cycle (``firmware.diag.dtc.new_cycle``) and the
+bench read and write the DTC rows of the state record (``firmware.tick.dtc``) through the
+interface of ``firmware.diag.dtc.DtcMemory`` (``entries[i].status``, ``.snapshot``, ...), and
+the last tick's values through ``DiagState.view``'s tuple."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from firmware.diag import SESSION_DEFAULT
+from firmware.diag.dtc import Snapshot
+from firmware.tick import dtc
+
+_ROW = ("status", "fdc", "passes", "occurrences", "aging", "first_tick")
+
+
+class EntryView:
+    """One DTC's row (``firmware.diag.dtc.DtcEntry``'s fields, read and written through)."""
+
+    __slots__ = ("_m", "_i")
+
+    def __init__(self, mem, i: int):
+        self._m, self._i = mem, i
+
+    def __getattr__(self, name):
+        if name in _ROW:
+            return int(self._m[name][self._i])
+        if name == "snapshot":
+            if not self._m["has_snapshot"][self._i]:
+                return None
+            return Snapshot(*(int(v) for v in self._m["snapshot"][self._i]))
+        raise AttributeError(name)
+
+    def __setattr__(self, name, value):
+        if name in EntryView.__slots__:
+            object.__setattr__(self, name, value)
+        elif name in _ROW:
+            self._m[name][self._i] = value
+        elif name == "snapshot":
+            self._m["has_snapshot"][self._i] = value is not None
+            self._m["snapshot"][self._i] = tuple(value) if value is not None else 0
+        else:
+            raise AttributeError(name)
+
+
+class EntriesView:
+    def __init__(self, mem):
+        self._m = mem
+
+    def __len__(self) -> int:
+        return dtc.N
+
+    def __getitem__(self, i: int) -> EntryView:
+        if not -dtc.N <= i < dtc.N:
+            raise IndexError(i)
+        return EntryView(self._m, i % dtc.N)
+
+    def __setitem__(self, i: int, entry) -> None:
+        """``entries[i] = DtcEntry()`` (a clear): its fields into the row."""
+        view = self[i]
+        for name in _ROW + ("snapshot",):
+            setattr(view, name, getattr(entry, name))
+
+    def __iter__(self):
+        return (EntryView(self._m, i) for i in range(dtc.N))
+
+
+class MemoryView:
+    """``firmware.diag.dtc.DtcMemory`` over the record ``S.dtc``."""
+
+    _FLAGS = ("setting_on", "quiet", "tnc_done", "cycle")
+
+    def __init__(self, mem):
+        object.__setattr__(self, "_m", mem)
+        object.__setattr__(self, "entries", EntriesView(mem))
+
+    def __getattr__(self, name):
+        if name in MemoryView._FLAGS:
+            value = self._m[name]
+            return int(value) if name == "cycle" else bool(value)
+        raise AttributeError(name)
+
+    def __setattr__(self, name, value):
+        if name not in MemoryView._FLAGS:
+            raise AttributeError(name)
+        self._m[name] = value
+
+
+class DiagView:
+    """``firmware.diag.DiagState`` for the UDS server: the session is the server's (Python,
+    between ticks); the DTC memory, the actuator test's supply reading and the last tick's
+    values are the state record's."""
+
+    def __init__(self, state):
+        self._s = state[0]                     # the state record's element (np.void)
+        self.fdi = state.view(np.recarray)[0].fdi   # (the fault-detection tests' state)
+        self.dtc = MemoryView(self._s["dtc"])
+        self.session = SESSION_DEFAULT
+        self.session_tick = 0
+        self.reset_requested = 0
+
+    @property
+    def view(self) -> tuple:
+        last = self._s["last"]
+        return tuple(int(last[n]) for n in ("mode", "grade", "faults", "speed",
+                                             "ba_rms_mmps2", "dtd_rms_um", "tick",
+                                             "supply_mv"))
+

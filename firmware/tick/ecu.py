@@ -1,0 +1,281 @@
+"""The ECU's tick compiled: ``tick(P, T, S, inp, out)`` is ``firmware.ecu.step`` over records
+(``firmware.tick.layout``): the calibration ``P``, the fixed-point path's tables ``T`` (None:
+the float path; numba compiles each variant with the other's branch pruned), the state
+``S`` (one record, a sub-record per stage), one tick's inputs and outputs. Stage for stage
+and operation for operation the Python of ``firmware.ecu`` and ``firmware.path``, so the two
+give the same bits; the stages and what each uses are numbered as there.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from firmware import safety
+from firmware.diag.fdi import SUPPLY_TESTS
+from firmware.ecu import INPUT_FAULTS
+from firmware.kernels import njit
+from firmware.modes import EVT_INVALID_REQUEST, EVT_REQUEST_RATE
+from firmware.params import MODE_ENERGY, MODE_PASSIVE, EcuParams
+from firmware.fx.tables import F_FORCE, MEAS_FRAC, STATE_FRAC
+from firmware.kernels import akf as akf_kern
+from firmware.tick import adc, akf, control, dtc, fdi, fx, grade, modes
+from firmware.tick.fixedpoint import to_fixed, to_float
+from firmware.tick.layout import INPUTS, OUTPUTS, params_record, record, view
+from firmware.tick.util import round_half_away as rha
+
+LAST = np.dtype([   # the last tick's values the DIDs and the next snapshot read
+    ("mode", "i8"), ("grade", "i8"), ("faults", "i8"),
+    ("speed", "i8"),            # VEHICLE_SPEED's counts (0xFFFF: none)
+    ("ba_rms_mmps2", "i8"), ("dtd_rms_um", "i8"), ("tick", "i8"),
+    ("supply_mv", "i8"),        # 0xFFFF: not measured yet
+])
+
+
+def state_dtype(p: EcuParams) -> np.dtype:
+    """The ECU's state for calibration ``p`` (array sizes follow it)."""
+    m = p.akf.H.shape[0]
+    n_hidden, n_in = p.control.bp_w_hidden.shape
+    return np.dtype([
+        ("tick", "i8"),
+        ("adc", adc.STATE), ("akf", akf.state_dtype(m)),
+        ("grade", grade.state_dtype(p.grade.n_blocks)), ("modes", modes.STATE),
+        ("ctl", control.state_dtype(n_in, n_hidden, p.control.bp_w_out.shape[0])),
+        ("fdi", fdi.STATE), ("dtc", dtc.STATE), ("last", LAST),
+        ("snapshot", "i8", (len(dtc.SNAPSHOT),)),    # (the freeze frame being taken)
+        ("good_counts", "i8", (4,)),                 # (stage 2b's: BA, WA, SWS, current)
+        ("fx", fx.state_dtype(m)),                   # the fixed-point path's integer state
+        ("resid_f", "f8", (m,)),                     # (its residual as floats)
+    ])
+
+
+def init(p: EcuParams, P: np.ndarray | None = None, T: np.ndarray | None = None
+         ) -> np.ndarray:
+    """A new ECU's state record for calibration ``p`` (``P``: its record, if made; ``T``: the
+    fixed-point tables' record, for that path)."""
+    P = params_record(p) if P is None else P
+    S = record(state_dtype(p))
+    s, c = view(S), view(P)
+    s.tick = -1
+    adc.init(s.adc)
+    akf.init(P[0]["akf"], S[0]["akf"])
+    grade.init(s.grade)
+    modes.init(c.modes, s.modes)
+    control.init(c.control, s.ctl, p.modes.controllers[p.modes.initial_mode])
+    fdi.init(s.fdi)
+    dtc.init(s.dtc)
+    if T is not None:
+        fx.init(view(T), s.fx, p.modes.controllers[p.modes.initial_mode])
+    s.last.grade, s.last.speed, s.last.tick, s.last.supply_mv = 255, 0xFFFF, -1, 0xFFFF
+    return S
+
+
+def inputs() -> np.ndarray:
+    return record(INPUTS)
+
+
+def outputs() -> np.ndarray:
+    return record(OUTPUTS)
+
+
+@njit
+def tick(Pa, Ta, Sa, ia, oa) -> None:
+    """One ECU tick: inputs ``ia[0]`` -> outputs ``oa[0]``, state ``Sa[0]`` updated; ``Ta``:
+    the fixed-point tables (None: the float path)."""
+    P, S, inp, out = Pa[0], Sa[0], ia[0], oa[0]
+    S.tick = inp.tick
+    # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault; a rail
+    #    the last estimate explains is none)
+    explained = 0
+    if abs(S.akf.x[0] - S.akf.x[1]) >= P.adc.current_rail_mps:
+        explained = 1 << adc.CUR
+    faults = adc.sample(P.adc, S.adc, inp.counts, explained)
+    ba, wa, defl = S.adc.value[adc.BA], S.adc.value[adc.WA], S.adc.value[adc.DEFL]
+    i_meas, speed = S.adc.value[adc.CUR], S.adc.value[adc.SPEED]
+    faults |= inp.link_faults
+    # 2. AKF: predict with the force from the measured current, correct with [BA, SWS, WA]
+    #    (uses 1 and the grade's G_q) -> estimate S.akf.x; a non-finite one is reset
+    road_intensity = akf.road_per_mps(P, S.grade.gq) * speed
+    if Ta is None:
+        force_meas, finite = akf.estimate(P, S, ba, wa, defl, i_meas, road_intensity)
+    else:
+        force_meas, finite = _estimate_fixed(P, Ta[0], S, ba, wa, road_intensity)
+    if not finite:
+        faults |= safety.FAULT_NONFINITE_ESTIMATE
+        akf.init(P.akf, S.akf)
+        if Ta is not None:
+            S.fx.x[:] = 0
+            S.fx.reset = True
+    vt, zt, zf = S.akf.x[1], S.akf.x[3], S.akf.x[4]
+    dtd_est = zt - zf
+    # 2b. model-based fault detection: innovation, flatline, actuator, supply tests (uses 1, 2)
+    if not finite:
+        S.fdi.failed = S.fdi.completed = 0
+    else:
+        faults |= _fdi(P, S, inp, defl, ba, wa, i_meas, force_meas, faults)
+    # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
+    g_est = grade.step(P.grade, S.grade, vt, dtd_est, ba, speed, P.dt_s)
+    dtd_rms = modes.road_holding_rms(P.modes, S.modes, dtd_est)
+    # 4. modes: recommendation, driver request, safety override, fail-safe (uses 1-3)
+    safety_fault = (faults & P.safety_relevant) != 0
+    mode = modes.step(P.modes, S.modes, g_est, inp.req_kind, inp.req_mode, inp.req_counter,
+                      dtd_rms, safety_fault)
+    if S.modes.events & EVT_INVALID_REQUEST:
+        faults |= safety.FAULT_INVALID_REQUEST
+    if S.modes.events & EVT_REQUEST_RATE:
+        faults |= safety.FAULT_RATE
+    # 5.-6. controller of the mode, crossfaded; the gate; force -> PWM duty / regen (uses 1-4)
+    regen_on = mode == MODE_ENERGY
+    if Ta is None:
+        duty, active, force = _control(P, S, mode, safety_fault, regen_on, ba, wa, i_meas,
+                                       force_meas)
+    else:
+        duty, active, force = _control_fixed(P, Ta[0], S, mode, safety_fault, regen_on)
+    # 7. outputs, quantised as sent (uses 1-6)
+    out.duty_q15, out.regen, out.enable = duty, regen_on and active, active
+    out.recommended_mode, out.active_mode, out.grade = S.modes.recommended, mode, g_est
+    out.faults, out.reason, out.events = faults, S.modes.reason, S.modes.events
+    out.override = S.modes.override
+    out.force_cmd_n, out.road_est_um = rha(force), rha(zf * 1e6)
+    out.dtd_est_um = rha(dtd_est * 1e6)
+    gq_log = S.grade.log_gq
+    out.gq_est_log_c = rha(gq_log * 100) if math.isfinite(gq_log) else -32768
+    out.ba_rms_mmps2, out.dtd_rms_um = rha(S.grade.ba_rms * 1e3), rha(dtd_rms * 1e6)
+    # 8. diagnostics: the command for the actuator test, the DTC memory (uses 1-7)
+    _diagnostics(P, S, inp, out, duty, mode, g_est, faults)
+
+
+@njit
+def _control(P, S, mode, fault, regen, ba, wa, i_meas, force_meas):
+    """Stages 5-6 of the float path (``firmware.path.FloatPath.control``): returns
+    (duty_q15, enable, force)."""
+    pl, x, n = P.plant, S.akf.x, P.modes.ramp_ticks
+    force = control.command(P.control, S.ctl, P.modes.controllers[mode], n, x, ba, P.dt_s)
+    if not ((mode != MODE_PASSIVE or S.ctl.ramp < n) and not fault):   # safety.force_allowed
+        control.actuator_reset(S.ctl.actuator)
+        return 0, False, 0.0
+    rel = x[0] - x[1]
+    i_ref = control.current_reference(pl, force, rel, not regen)
+    # relative acceleration over the tick: measured now, plus the change of force
+    rel_acc = (ba - wa) + (force - force_meas) * (1.0 / pl.ms + 1.0 / pl.mt)
+    duty = control.actuator_step(P.actuator, pl, S.ctl.actuator, i_ref, i_meas, rel, regen,
+                                 P.control.regen_min_voltage_ratio, rel_acc, P.dt_s)
+    return duty, True, force
+
+
+@njit
+def _estimate_fixed(P, T, S, ba, wa, road_intensity):
+    """Stage 2 of the fixed-point path (``firmware.path.FixedPath.estimate``): the integer
+    prediction and correction of x around the float covariance and gain. Returns
+    (force_meas, finite)."""
+    A, F, K = P.akf, S.fx, S.akf
+    m = K.R.shape[0]
+    for c in range(4):           # the last good counts (-1: none yet)
+        F.counts[c] = S.adc.counts[c]
+    F.reset = False
+    fx.measure(T, F, F.counts)
+    adapt, held = akf.off_model(P, S, ba, wa)
+    akf_kern.predict_into(A.phi, A.gamma, A.q_unit, K.x, K.P, 0.0, road_intensity, False)
+    for j in range(m):
+        r = K.r[j]
+        F.r_q[j] = to_fixed(r, MEAS_FRAC[j]) if math.isfinite(r) else 0
+        S.resid_f[j] = to_float(F.resid[j], MEAS_FRAC[j])
+    skip = held & ((1 << m) - 1)
+    if skip:
+        K.R_saved[:, :] = K.R
+        for j in range(m):
+            if (skip >> j) & 1:
+                K.R[j, j] *= akf.SKIP_SCALE
+    gain, eps, Pn, Rn, rn, K.b_pow, hit, hph = akf_kern.gain(
+        A.H, K.P, K.R, K.r, S.resid_f, A.r_floor, A.r_scale, K.b_pow, A.forgetting,
+        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive))
+    K.P[:, :] = Pn
+    if skip:
+        K.R[:, :] = K.R_saved
+    else:
+        K.R[:, :] = Rn
+    K.r[:] = rn
+    K.hph[:] = hph
+    K.innovation[:] = eps
+    K.guard_hits += hit
+    fx.quantize_gain(T, F, gain)
+    fx.correct(T, F)
+    for i in range(5):
+        K.x[i] = to_float(F.x[i], STATE_FRAC[i])
+    return to_float(F.force_meas, F_FORCE), akf_kern.all_finite(K.x, K.P)
+
+
+@njit
+def _control_fixed(P, T, S, mode, fault, regen):
+    """Stages 5-6 of the fixed-point path (``firmware.path.FixedPath.control``)."""
+    F = S.fx
+    F.want, F.passive, F.fault, F.regen = P.modes.controllers[mode], mode == MODE_PASSIVE, \
+        fault, regen
+    duty, active, force_q = fx.control(T, F, F.want, F.passive, fault, regen)
+    return duty, active, to_float(force_q, F_FORCE)
+
+
+@njit
+def _fdi(P, S, inp, defl, ba, wa, i_meas, force_meas, faults) -> int:
+    """Stage 2b: the fault-word bits of the failed tests (a failed supply test is the supply
+    bit, any other the plausibility bit)."""
+    gq = S.grade.gq
+    rho = gq / P.akf_q_gq_nominal if math.isfinite(gq) and gq > P.akf_q_gq_nominal else 1.0
+    lifted = akf.airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa)
+    good = S.good_counts
+    for c in range(4):
+        good[c] = adc.good_count(S.adc, c)
+    failed = fdi.step(P, S.fdi, inp.tick, S.akf.innovation, S.akf.hph, rho, force_meas, good,
+                      defl, lifted, i_meas, ba - wa, not (faults & INPUT_FAULTS), inp.supply)
+    return ((safety.FAULT_PLAUSIBILITY if failed & ~SUPPLY_TESTS else 0)
+            | (safety.FAULT_SUPPLY if failed & SUPPLY_TESTS else 0))
+
+
+@njit
+def supply_mv(volts: float) -> int:
+    """The supply voltage as the DIDs and snapshots carry it: mV, 0xFFFF not measured yet."""
+    if math.isnan(volts):
+        return 0xFFFF
+    return min(0xFFFE, max(0, rha(volts * 1000.0)))
+
+
+@njit
+def _diagnostics(P, S, inp, out, duty, mode, g_est, faults) -> None:
+    """Stage 8: the tick's command for the actuator test, the DTC memory's reports (a first
+    failure's snapshot: the last tick's view, the supply as last measured), and the values
+    the DIDs and the next snapshot read."""
+    fdi.command(P, S.fdi, duty, out.enable, out.regen)
+    v, snap = S.last, S.snapshot
+    snap[0], snap[1], snap[2], snap[3] = inp.tick, v.speed, v.grade, v.mode
+    snap[4], snap[5], snap[6] = v.ba_rms_mmps2, v.dtd_rms_um, supply_mv(S.fdi.supply_v)
+    dtc.update(S.dtc, inp.tick, faults, S.fdi.failed, S.fdi.completed, snap)
+    speed = inp.counts[adc.SPEED]
+    v.mode, v.grade, v.faults = mode, g_est, faults
+    v.speed = 0xFFFF if speed < 0 else speed
+    v.ba_rms_mmps2, v.dtd_rms_um, v.tick = out.ba_rms_mmps2, out.dtd_rms_um, inp.tick
+    v.supply_mv = supply_mv(S.fdi.supply_v)
+
+
+@njit
+def tick_values(Pa, Ta, Sa, ia, oa, k, c0, c1, c2, c3, c4, supply, kind, mode, counter,
+                link):
+    """``tick`` with the inputs as numbers (counts and supply -1 for none) and the outputs
+    returned in ``firmware.ecu.Outputs``' order: the call the bench's ECU node makes."""
+    inp = ia[0]
+    inp.tick = k
+    inp.counts[0], inp.counts[1], inp.counts[2], inp.counts[3], inp.counts[4] = \
+        c0, c1, c2, c3, c4
+    inp.supply, inp.req_kind, inp.req_mode, inp.req_counter = supply, kind, mode, counter
+    inp.link_faults = link
+    tick(Pa, Ta, Sa, ia, oa)
+    o = oa[0]
+    return (o.duty_q15, o.regen != 0, o.enable != 0, o.recommended_mode, o.active_mode,
+            o.grade, o.faults, o.reason, o.events, o.override != 0, o.force_cmd_n,
+            o.road_est_um, o.dtd_est_um, o.gq_est_log_c, o.ba_rms_mmps2, o.dtd_rms_um)
+
+
+@njit
+def new_cycle(Sa) -> None:
+    """``firmware.diag.dtc.new_cycle`` on the state record's DTC memory."""
+    dtc.new_cycle(Sa[0].dtc)

@@ -1,0 +1,97 @@
+"""Stage 4, the working-mode state machine, compiled (``firmware.modes`` says what it does):
+recommend the grade's mode, let the driver decide, safety first, fail-safe on a fault."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from firmware.kernels import njit
+from firmware.modes import (EVT_ACCEPTED, EVT_CHOSEN, EVT_INVALID_REQUEST, EVT_REFUSED,
+                            EVT_REQUEST_RATE, N_MODES, REASON_FAULT, REASON_NONE,
+                            REASON_ROAD_HOLDING)
+from firmware.params import (GRADE_UNKNOWN, MODE_COMFORT, MODE_COMPREHENSIVE, MODE_ENERGY,
+                             MODE_PASSIVE, MODE_SAFETY, REQ_ACCEPT, REQ_CHOOSE, REQ_REFUSE)
+
+STATE = np.dtype([
+    ("user_mode", "i8"), ("active_mode", "i8"), ("recommended", "i8"),
+    ("last_counter", "i8"), ("override", "u1"), ("override_ticks", "i8"), ("reason", "i8"),
+    ("events", "i8"), ("refused_mode", "i8"),
+    ("ticks", "i8"),                 # steps taken
+    ("last_request_tick", "i8"),     # step of the previous new request
+    ("dtd2_ema", "f8"),              # tyre-deflection mean square (road-holding check)
+])
+
+
+def init(P, S) -> None:
+    m = P.initial_mode
+    S.user_mode = S.active_mode = S.recommended = m
+    S.last_counter = S.refused_mode = -1
+    S.last_request_tick = -(1 << 30)
+
+
+@njit
+def grade_to_mode(grade: int) -> int:
+    return (MODE_ENERGY, MODE_COMFORT, MODE_SAFETY, MODE_COMPREHENSIVE)[grade]
+
+
+@njit
+def road_holding_rms(P, S, dtd_est: float) -> float:
+    """The tyre-deflection RMS of the road-holding check: an exponential mean square over
+    ``safety_window_ticks``."""
+    alpha = 1.0 / P.safety_window_ticks
+    S.dtd2_ema += alpha * (dtd_est * dtd_est - S.dtd2_ema)
+    return math.sqrt(S.dtd2_ema)
+
+
+@njit
+def step(P, S, grade: int, req_kind: int, req_mode: int, req_counter: int, dtd_rms: float,
+         fault: bool) -> int:
+    S.events = 0
+    S.ticks += 1
+    if grade != GRADE_UNKNOWN:
+        S.recommended = grade_to_mode(grade)
+    if req_counter != S.last_counter:
+        S.last_counter = req_counter
+        too_soon = req_kind != 0 and S.ticks - S.last_request_tick < P.request_min_ticks
+        if req_kind != 0:
+            S.last_request_tick = S.ticks
+        if too_soon:
+            S.events |= EVT_REQUEST_RATE
+        elif req_kind == REQ_ACCEPT:
+            if req_mode == S.recommended:
+                S.user_mode = S.recommended
+                S.events |= EVT_ACCEPTED
+            else:
+                S.events |= EVT_INVALID_REQUEST   # accepting a stale recommendation
+        elif req_kind == REQ_REFUSE:
+            S.refused_mode = S.recommended
+            S.events |= EVT_REFUSED
+        elif req_kind == REQ_CHOOSE:
+            if 0 <= req_mode < N_MODES:
+                S.user_mode = req_mode
+                S.events |= EVT_CHOSEN
+            else:
+                S.events |= EVT_INVALID_REQUEST
+        elif req_kind != 0:
+            S.events |= EVT_INVALID_REQUEST
+    # safety first
+    if S.override:
+        S.override_ticks += 1
+        if (dtd_rms < P.safety_dtd_rms_limit * P.safety_exit_ratio
+                and S.override_ticks >= P.safety_hold_ticks):
+            S.override = False
+    elif dtd_rms > P.safety_dtd_rms_limit:
+        S.override = True
+        S.override_ticks = 0
+    if fault:
+        S.reason = REASON_FAULT
+        S.active_mode = MODE_PASSIVE
+    elif S.override:
+        S.reason = REASON_ROAD_HOLDING
+        S.active_mode = MODE_SAFETY
+    else:
+        S.reason = REASON_NONE
+        S.active_mode = S.user_mode
+    return S.active_mode

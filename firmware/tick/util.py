@@ -1,0 +1,31 @@
+"""Small helpers of the compiled stages, each with the bits of the Python it replaces."""
+
+from __future__ import annotations
+
+import math
+
+from firmware.kernels import njit
+
+
+@njit
+def pymax(a, b):
+    """Python's ``max(a, b)``: ``b`` only where ``b > a`` (a NaN ``b`` never wins)."""
+    return b if b > a else a
+
+
+@njit
+def pymin(a, b):
+    """Python's ``min(a, b)``: ``b`` only where ``b < a``."""
+    return b if b < a else a
+
+
+@njit
+def clamp(x, lo, hi):
+    """Python's ``min(hi, max(lo, x))`` (a NaN ``x`` gives ``lo``)."""
+    return pymin(hi, pymax(lo, x))
+
+
+@njit
+def round_half_away(x: float) -> int:
+    """``firmware.fixedpoint.round_half_away``: half away from zero."""
+    return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)
