@@ -168,3 +168,56 @@ def test_calibration_record_holds_every_number_of_the_calibration():
     # a calibration whose tyre cannot lift off: gamma_wheel None reads as zeros
     p = dataclasses.replace(P, akf=dataclasses.replace(P.akf, gamma_wheel=None))
     assert (params_record(p)[0]["akf"]["gamma_wheel"] == 0).all()
+
+
+
+def test_the_tick_allocates_nothing():
+    """numba's allocation counters (NUMBA_NRT_STATS=1, in a child process) around a compiled
+    loop of the tick: one tick and a thousand make the same allocations (those of the
+    loop's own arguments), on both paths."""
+    import subprocess
+    import sys
+
+    code = """
+import json, hil
+from numba import njit
+from numba.core.runtime import rtsys
+from hil import sil
+from hil.config import default_vehicle
+from calib.fx_tables import build_tables
+from firmware.ecu import Inputs
+from firmware.tick import Ecu
+from firmware.tick import ecu as te
+
+@njit
+def run(P, T, S, I, O, n):
+    for k in range(n):
+        I[0].tick = k
+        te.tick(P, T, S, I, O)
+
+out = {}
+p = sil.ecu_params(default_vehicle(), "comfort")
+for name, tables in (("float", None), ("fixed", build_tables(p))):
+    e = Ecu(p, tables)
+    for k in range(3000):            # (past the settling: every test and controller runs)
+        e.step(Inputs(k, 2048 + k % 7, 2040 + k % 11, 2048 - k % 5, 2048 + k % 3, 2000,
+                      supply=2500 if k % 10 == 0 else None))
+    counts = []
+    for n in (1, 1000):
+        a = rtsys.get_allocation_stats()
+        run(e.P, e.T, e.S, e.I, e.O, n)
+        b = rtsys.get_allocation_stats()
+        counts.append([b.alloc - a.alloc, b.free - a.free])
+    out[name] = counts
+print(json.dumps(out))
+"""
+    import json
+    import os
+
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, "NUMBA_NRT_STATS": "1"}, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads(res.stdout)
+    for name, (one, many) in got.items():
+        assert one == many, (name, one, many)     # no tick allocates
+        assert one[0] == one[1]                   # and what the call allocated, it freed

@@ -2,7 +2,12 @@
 in a fixed order, a Jacobi eigen-decomposition for the R-hat guard, the adjugate (or Gaussian
 elimination) for S^-1; no numpy/LAPACK call per tick, the same bits compiled or interpreted.
 The state's arrays are updated in place by the ``*_into`` kernels: returning new arrays from a
-compiled call costs about 1 us each in boxing."""
+compiled call costs about 1 us each in boxing.
+
+The compiled tick (``firmware.tick``) allocates nothing: ``predict_ws``, ``gain_ws``,
+``update_ws`` and ``tick_ws`` work in a workspace record (``workspace_dtype``: every
+intermediate matrix, sized by the measurements m and the states n); the functions without
+``_ws`` allocate theirs and are the same arithmetic, for the Python reference and the tests."""
 
 from __future__ import annotations
 
@@ -16,9 +21,29 @@ R_CEILING = 1e8   # largest R-hat eigenvalue, in units of the floor
 JACOBI_SWEEPS = 60
 
 
+
+def workspace_dtype(m: int, n: int = 5) -> np.dtype:
+    """The intermediates of one filter tick, for ``*_ws``."""
+    return np.dtype([
+        ("xn", "f8", (n,)), ("t1", "f8", (n, n)), ("t2", "f8", (n, n)), ("z", "f8", (m,)),
+        ("resid", "f8", (m,)), ("K", "f8", (n, m)), ("eps", "f8", (m,)), ("hph", "f8", (m,)),
+        ("HP", "f8", (m, n)), ("HPHt", "f8", (m, m)), ("Ra", "f8", (m, m)),
+        ("S", "f8", (m, m)), ("Y", "f8", (m, n)), ("KHP", "f8", (n, n)), ("KS", "f8", (n, m)),
+        ("KSKt", "f8", (n, n)), ("Pj", "f8", (n, n)),
+        ("Rg", "f8", (m, m)), ("ja", "f8", (m, m)), ("jV", "f8", (m, m)), ("jw", "f8", (m,)),
+        ("M", "f8", (m, m)),
+    ])
+
+
+def workspace(m: int, n: int = 5):
+    """A workspace record for Python callers (its fields as attributes)."""
+    return np.zeros(1, workspace_dtype(m, n)).view(np.recarray)[0]
+
+
 @njit
-def guard(R, floor, scale, out):
-    """guard_r into ``out``; returns whether it acted."""
+def guard_ws(R, floor, scale, out, Rn, a, V, w):
+    """guard_r into ``out`` (``Rn``, ``a``, ``V``, ``w``: scratch of R's size); returns whether
+    it acted."""
     m = R.shape[0]
     total = 0.0
     for i in range(m):
@@ -30,13 +55,12 @@ def guard(R, floor, scale, out):
             for j in range(m):
                 out[i, j] = floor[i] if i == j else 0.0
         return True
-    Rn = np.empty((m, m))
     for i in range(m):
         for j in range(m):
             Rn[i, j] = out[i, j] / scale[i, j]
     if psd_shifted(Rn):                  # (implies trace >= n; the ceiling is checked inside)
         return False
-    w, V = jacobi_eigh(Rn)
+    jacobi_into(Rn, a, V, w)
     for k in range(m):
         w[k] = min(R_CEILING, max(1.0, w[k]))
     for i in range(m):
@@ -46,6 +70,14 @@ def guard(R, floor, scale, out):
                 s += V[i, k] * w[k] * V[j, k]
             out[i, j] = s * scale[i, j]
     return True
+
+
+@njit
+def guard(R, floor, scale, out):
+    """guard_r into ``out``; returns whether it acted."""
+    m = R.shape[0]
+    return guard_ws(R, floor, scale, out, np.empty((m, m)), np.empty((m, m)),
+                    np.empty((m, m)), np.empty(m))
 
 
 @njit
@@ -84,13 +116,15 @@ def psd_shifted(Rn) -> bool:
 
 
 @njit
-def jacobi_eigh(A):
-    """Eigenvalues w and orthonormal eigenvectors V (columns) of the symmetric matrix A, by
-    cyclic Jacobi rotations (A = V diag(w) V^T). For the ECU's 2x2/3x3 R-hat: a few sweeps,
-    plain floats, the same bits compiled or interpreted."""
+def jacobi_into(A, a, V, w):
+    """Eigenvalues ``w`` and orthonormal eigenvectors ``V`` (columns) of the symmetric matrix
+    A, by cyclic Jacobi rotations (A = V diag(w) V^T; ``a``: scratch). For the ECU's 2x2/3x3
+    R-hat: a few sweeps, plain floats, the same bits compiled or interpreted."""
     n = A.shape[0]
-    a = A.copy()
-    V = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            a[i, j] = A[i, j]
+            V[i, j] = 0.0
     for k in range(n):
         V[k, k] = 1.0
     for _ in range(JACOBI_SWEEPS):
@@ -128,20 +162,26 @@ def jacobi_eigh(A):
                     vkp, vkq = V[k, p], V[k, q]
                     V[k, p] = c * vkp - s * vkq
                     V[k, q] = s * vkp + c * vkq
-    w = np.empty(n)
     for k in range(n):
         w[k] = a[k, k]
+
+
+@njit
+def jacobi_eigh(A):
+    """``jacobi_into``, returning (w, V)."""
+    n = A.shape[0]
+    w, V = np.empty(n), np.empty((n, n))
+    jacobi_into(A, np.empty((n, n)), V, w)
     return w, V
 
 
 @njit
-def solve_sym(S, B):
-    """S^-1 B for the symmetric positive definite innovation covariance S (the guard keeps it
-    well conditioned): the adjugate for 3x3 and 2x2, Gaussian elimination with partial
-    pivoting otherwise (and when the determinant is not positive). A singular S gives NaN,
-    which the ECU's non-finite check catches."""
+def solve_into(S, B, out, M):
+    """S^-1 B into ``out`` for the symmetric positive definite innovation covariance S (the
+    guard keeps it well conditioned): the adjugate for 3x3 and 2x2, Gaussian elimination with
+    partial pivoting otherwise (and when the determinant is not positive; ``M``: scratch of
+    S's size). A singular S gives NaN, which the ECU's non-finite check catches."""
     n, cols = B.shape
-    out = np.empty((n, cols))
     if n == 3:
         a, b, c = S[0, 0], S[0, 1], S[0, 2]
         e, f, i = S[1, 1], S[1, 2], S[2, 2]
@@ -154,7 +194,7 @@ def solve_sym(S, B):
                 out[0, j] = (A * b0 + Bc * b1 + C * b2) / det
                 out[1, j] = (Bc * b0 + E * b1 + F * b2) / det
                 out[2, j] = (C * b0 + F * b1 + I * b2) / det
-            return out
+            return
     elif n == 2:
         a, b, e = S[0, 0], S[0, 1], S[1, 1]
         det = a * e - b * b
@@ -162,8 +202,10 @@ def solve_sym(S, B):
             for j in range(cols):
                 out[0, j] = (e * B[0, j] - b * B[1, j]) / det
                 out[1, j] = (a * B[1, j] - b * B[0, j]) / det
-            return out
-    M = S.copy()
+            return
+    for i in range(n):
+        for j in range(n):
+            M[i, j] = S[i, j]
     for i in range(n):
         for j in range(cols):
             out[i, j] = B[i, j]
@@ -174,7 +216,7 @@ def solve_sym(S, B):
                 piv = i
         if not abs(M[piv, k]) > 0.0:     # singular (or NaN): no solution
             out[:, :] = math.nan
-            return out
+            return
         if piv != k:
             for j in range(n):
                 M[k, j], M[piv, j] = M[piv, j], M[k, j]
@@ -192,125 +234,150 @@ def solve_sym(S, B):
             for i in range(k + 1, n):
                 s -= M[k, i] * out[i, j]
             out[k, j] = s / M[k, k]
+
+
+@njit
+def solve_sym(S, B):
+    """``solve_into``, returning S^-1 B."""
+    n = S.shape[0]
+    out = np.empty((n, B.shape[1]))
+    solve_into(S, B, out, np.empty((n, n)))
     return out
 
 
 @njit
-def mm(A, B):
+def mm_into(A, B, out):
     """A @ B, summed in index order."""
-    n, m = A.shape[0], B.shape[1]
-    out = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
+    for i in range(A.shape[0]):
+        for j in range(B.shape[1]):
             s = 0.0
             for k in range(A.shape[1]):
                 s += A[i, k] * B[k, j]
             out[i, j] = s
-    return out
 
 
 @njit
-def mmt(A, B):
+def mmt_into(A, B, out):
     """A @ B.T, summed in index order."""
-    n, m = A.shape[0], B.shape[0]
-    out = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
+    for i in range(A.shape[0]):
+        for j in range(B.shape[0]):
             s = 0.0
             for k in range(A.shape[1]):
                 s += A[i, k] * B[j, k]
             out[i, j] = s
-    return out
 
 
 @njit
-def predict(phi, gamma, q_unit, x, P, u, q, with_x):
-    """x' = phi x + gamma u (when ``with_x``), P' = phi P phi^T + q q_unit."""
+def predict_ws(phi, gamma, q_unit, x, P, u, q, with_x, W):
+    """In place: x = phi x + gamma u (when ``with_x``), P = phi P phi^T + q q_unit."""
     n = P.shape[0]
-    xn = x.copy()
     if with_x:
         for i in range(n):
             s = 0.0
             for j in range(n):
                 s += phi[i, j] * x[j]
-            xn[i] = s + gamma[i] * u
-    Pn = mmt(mm(phi, P), phi)
+            W.xn[i] = s + gamma[i] * u
+        for i in range(n):
+            x[i] = W.xn[i]
+    mm_into(phi, P, W.t1)
+    mmt_into(W.t1, phi, W.t2)
     for i in range(n):
         for j in range(n):
-            Pn[i, j] += q * q_unit[i, j]
-    return xn, Pn
+            P[i, j] = W.t2[i, j] + q * q_unit[i, j]
+    return
 
 
 @njit
-def gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive):
-    """The correction's noise adaptation, gain and Joseph-form covariance; see ``gain``.
-    Returns (K, eps, P, R, r, b_pow, guard acted, diag(H P H^T))."""
+def gain_ws(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive, W):
+    """In place: the correction's noise adaptation (R, r), gain (``W.K``), innovation
+    (``W.eps``), diag(H P H^T) (``W.hph``) and Joseph-form covariance (P); see
+    ``firmware.akf.gain``. Returns (b_pow, guard acted)."""
     m, n = H.shape
-    eps = np.empty(m)
+    eps = W.eps
     for i in range(m):
         eps[i] = resid[i] - r[i] if bias_adaptive else resid[i]
-    HP = mm(H, P)
-    HPHt = mmt(HP, H)
-    rn = r.copy()
-    Rn = R.copy()
+    HP, HPHt = W.HP, W.HPHt
+    mm_into(H, P, HP)
+    mmt_into(HP, H, HPHt)
     hit = False
     if adaptive:
         d = (1.0 - b) / (1.0 - b_pow)      # b_pow = b^(t+1); d = 1 at t = 0
         b_pow *= b
-        if bias_adaptive:
-            for i in range(m):
-                rn[i] = (1.0 - d) * r[i] + d * resid[i]
-        Ra = np.empty((m, m))
+        Ra = W.Ra
         for i in range(m):
             for j in range(m):
                 Ra[i, j] = (1.0 - d) * R[i, j] + d * (eps[i] * eps[j] - HPHt[i, j])
-        hit = guard(Ra, r_floor, r_scale, Rn)
-    S = np.empty((m, m))
+        if bias_adaptive:
+            for i in range(m):
+                r[i] = (1.0 - d) * r[i] + d * resid[i]
+        hit = guard_ws(Ra, r_floor, r_scale, R, W.Rg, W.ja, W.jV, W.jw)
+    S = W.S
     for i in range(m):
         for j in range(m):
-            S[i, j] = HPHt[i, j] + Rn[i, j]
-    Y = solve_sym(S, HP)                  # S^-1 H P; K = P H^T S^-1 = Y^T (S symmetric)
-    K = np.empty((n, m))
+            S[i, j] = HPHt[i, j] + R[i, j]
+    Y, K = W.Y, W.K
+    solve_into(S, HP, Y, W.M)             # S^-1 H P; K = P H^T S^-1 = Y^T (S symmetric)
     for i in range(n):
         for j in range(m):
             K[i, j] = Y[j, i]
     # Joseph form (I-KH) P (I-KH)^T + K R K^T, expanded: P - K HP - (K HP)^T + K S K^T
-    KHP = mm(K, HP)
-    KSKt = mmt(mm(K, S), K)
-    Pj = np.empty((n, n))
+    KHP, KSKt, Pj = W.KHP, W.KSKt, W.Pj
+    mm_into(K, HP, KHP)
+    mm_into(K, S, W.KS)
+    mmt_into(W.KS, K, KSKt)
     for i in range(n):
         for j in range(n):
             Pj[i, j] = P[i, j] - KHP[i, j] - KHP[j, i] + KSKt[i, j]
-    Pn = np.empty((n, n))
     for i in range(n):
         for j in range(n):
-            Pn[i, j] = 0.5 * (Pj[i, j] + Pj[j, i])
-    hph = np.empty(m)
+            P[i, j] = 0.5 * (Pj[i, j] + Pj[j, i])
     for i in range(m):
-        hph[i] = HPHt[i, i]
-    return K, eps, Pn, Rn, rn, b_pow, hit, hph
+        W.hph[i] = HPHt[i, i]
+    return b_pow, hit
 
 
 @njit
-def update(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive):
-    """Residual z - H x - D u, then ``gain`` and x += K eps. Returns (x, P, R, r, eps,
-    b_pow, guard acted, diag(H P_pred H^T))."""
+def update_ws(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive,
+              W):
+    """In place: the residual z - H x - D u, ``gain_ws``, x += K eps. Returns (b_pow, guard
+    acted)."""
     m, n = H.shape
-    resid = np.empty(m)
+    resid = W.resid
     for i in range(m):
         s = 0.0
         for k in range(n):
             s += H[i, k] * x[k]
         resid[i] = z[i] - s - D[i] * u
-    K, eps, Pn, Rn, rn, b_pow, hit, hph = gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b,
-                                               adaptive, bias_adaptive)
-    xn = np.empty(n)
+    b_pow, hit = gain_ws(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive,
+                         bias_adaptive, W)
+    K, eps = W.K, W.eps
     for i in range(n):
         s = 0.0
         for k in range(m):
             s += K[i, k] * eps[k]
-        xn[i] = x[i] + s
-    return xn, Pn, Rn, rn, eps, b_pow, hit, hph
+        W.xn[i] = x[i] + s
+    for i in range(n):
+        x[i] = W.xn[i]
+    return b_pow, hit
+
+
+@njit
+def tick_ws(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now, r_floor,
+            r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out, W):
+    """``predict_ws`` then ``update_ws`` with z = [z0, z1(, z2)]; the innovation and
+    diag(H P H^T) into ``eps_out``, ``hph_out``. Returns (b_pow, guard acted, finite)."""
+    predict_ws(phi, gamma, q_unit, x, P, u_tick, q, True, W)
+    z = W.z
+    z[0] = z0
+    z[1] = z1
+    if z.shape[0] > 2:
+        z[2] = z2
+    b_pow, hit = update_ws(H, D, P, R, r, x, z, u_now, r_floor, r_scale, b_pow, b, adaptive,
+                           bias_adaptive, W)
+    for i in range(eps_out.shape[0]):
+        eps_out[i] = W.eps[i]
+        hph_out[i] = W.hph[i]
+    return b_pow, hit, all_finite(x, P)
 
 
 @njit
@@ -326,36 +393,34 @@ def all_finite(x, P) -> bool:
     return True
 
 
-@njit
+# ---------------------------------------------------------------- allocating (Python callers)
+
+
 def predict_into(phi, gamma, q_unit, x, P, u, q, with_x):
-    xn, Pn = predict(phi, gamma, q_unit, x, P, u, q, with_x)
-    x[:] = xn
-    P[:, :] = Pn
+    predict_ws(phi, gamma, q_unit, x, P, u, q, with_x, workspace(1, P.shape[0]))
 
 
-@njit
+def gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive):
+    """``gain_ws`` on copies: returns (K, eps, P, R, r, b_pow, guard acted, diag(H P H^T))."""
+    W = workspace(H.shape[0], H.shape[1])
+    Pn, Rn, rn = P.copy(), R.copy(), r.copy()
+    b_pow, hit = gain_ws(H, Pn, Rn, rn, resid, r_floor, r_scale, b_pow, b, adaptive,
+                         bias_adaptive, W)
+    return W.K.copy(), W.eps.copy(), Pn, Rn, rn, b_pow, hit, W.hph.copy()
+
+
 def update_into(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive,
-                 eps_out, hph_out):
-    xn, Pn, Rn, rn, eps, b_pow, hit, hph = update(H, D, P, R, r, x, z, u, r_floor, r_scale,
-                                                   b_pow, b, adaptive, bias_adaptive)
-    x[:] = xn
-    P[:, :] = Pn
-    R[:, :] = Rn
-    r[:] = rn
-    eps_out[:] = eps
-    hph_out[:] = hph
+                eps_out, hph_out):
+    W = workspace(H.shape[0], H.shape[1])
+    b_pow, hit = update_ws(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive,
+                           bias_adaptive, W)
+    eps_out[:] = W.eps
+    hph_out[:] = W.hph
     return b_pow, hit
 
 
-@njit
 def tick_into(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now, r_floor,
-               r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out):
-    predict_into(phi, gamma, q_unit, x, P, u_tick, q, True)
-    z = np.empty(H.shape[0])
-    z[0] = z0
-    z[1] = z1
-    if z.shape[0] > 2:
-        z[2] = z2
-    b_pow, hit = update_into(H, D, P, R, r, x, z, u_now, r_floor, r_scale, b_pow, b, adaptive,
-                              bias_adaptive, eps_out, hph_out)
-    return b_pow, hit, all_finite(x, P)
+              r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out):
+    return tick_ws(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now,
+                   r_floor, r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out,
+                   workspace(H.shape[0], H.shape[1]))

@@ -32,17 +32,24 @@ def forward(w_h, b_h, w_o, b_o, y, scale, x, h, g, gains):
 
 @njit
 def learn(w_h, b_h, w_o, b_o, dw_h, db_h, dw_o, db_o, x, h, g, scale, e, d_p, d_i, d_d,
-           alpha, eta):
+          alpha, eta):
+    """``learn_into`` with its deltas allocated."""
+    learn_into(w_h, b_h, w_o, b_o, dw_h, db_h, dw_o, db_o, x, h, g, scale, e, d_p, d_i, d_d,
+               alpha, eta, np.empty(w_o.shape[0]), np.empty(w_o.shape[1]))
+
+
+@njit
+def learn_into(w_h, b_h, w_o, b_o, dw_h, db_h, dw_o, db_o, x, h, g, scale, e, d_p, d_i, d_d,
+               alpha, eta, delta_o, delta_h):
     """One gradient step with momentum on E = e^2 / 2:
     delta_o = e sgn(dy/du) du/dO g'(net_o) with du/dO = scale du/dK / FORCE_REF_N and
     g' = 2 g (1 - g); delta_h = (1 - h^2) W_o^T delta_o (with W_o before this step);
-    dW = alpha dW + eta outer(delta, input); W += dW."""
+    dW = alpha dW + eta outer(delta, input); W += dW. ``delta_o``, ``delta_h``: the deltas'
+    storage (the compiled tick's, allocated nowhere)."""
     no, nh = w_o.shape
     du = (d_p, d_i, d_d)
-    delta_o = np.empty(no)
     for k in range(no):
         delta_o[k] = e * (scale[k] * du[k] / FORCE_REF_N) * (2.0 * g[k] * (1.0 - g[k]))
-    delta_h = np.empty(nh)
     for i in range(nh):
         s = 0.0
         for k in range(no):

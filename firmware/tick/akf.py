@@ -25,6 +25,7 @@ def state_dtype(m: int) -> np.dtype:
         ("hph", "f8", (m,)),               # diag(H P_pred H^T) of the last correction
         ("guard_hits", "i8"),              # how often the R-hat guard acted
         ("R_saved", "f8", (m, m)),         # (R-hat while a held measurement's is scaled)
+        ("ws", kern.workspace_dtype(m)),   # (the tick's intermediates: nothing allocated)
     ])
 
 
@@ -109,10 +110,11 @@ def tick(A, S, u_tick: float, road_intensity: float, ba: float, defl: float, wa:
         for j in range(m):
             if (skip >> j) & 1:
                 S.R[j, j] *= SKIP_SCALE
-    S.b_pow, hit, finite = kern.tick_into(
+    S.b_pow, hit, finite = kern.tick_ws(
         A.phi, A.gamma, A.q_unit, A.H, A.D, S.P, S.R, S.r, S.x, u_tick, road_intensity, ba,
         defl, wa, u_now, A.r_floor, A.r_scale, S.b_pow, A.forgetting,
-        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive), S.innovation, S.hph)
+        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive), S.innovation, S.hph,
+        S.ws)
     if skip:
         S.R[:, :] = S.R_saved
     S.guard_hits += hit

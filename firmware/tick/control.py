@@ -30,6 +30,7 @@ def bppid_dtype(n_in: int, n_hidden: int, n_out: int) -> np.dtype:
         ("x", "f8", (n_in,)), ("h", "f8", (n_hidden,)), ("g", "f8", (n_out,)),  # learning's
         ("k_pid", "f8", (3,)),       # the gains the PID uses: the network's, low-passed
         ("fresh", "u1"),             # the next step seeds k_pid with the network's gains
+        ("delta_o", "f8", (n_out,)), ("delta_h", "f8", (n_hidden,)),   # (learning's deltas)
     ])
 
 
@@ -89,8 +90,9 @@ def bppid_step(P, S, ba: float, dt: float) -> float:
             S.k_pid[k] += P.bp_gain_alpha * (S.gains[k] - S.k_pid[k])
     u = pid_step(S.pid, e_si, S.k_pid[0], S.k_pid[1], S.k_pid[2], P.pid_leak, dt,
                  P.force_limit)
-    bp_kern.learn(S.w_h, S.b_h, S.w_o, S.b_o, S.dw_h, S.db_h, S.dw_o, S.db_o, S.x, S.h,
-                  S.g, P.bp_scale, -y, d_p, d_i, d_d, P.bp_alpha, P.bp_eta)
+    bp_kern.learn_into(S.w_h, S.b_h, S.w_o, S.b_o, S.dw_h, S.db_h, S.dw_o, S.db_o, S.x, S.h,
+                       S.g, P.bp_scale, -y, d_p, d_i, d_d, P.bp_alpha, P.bp_eta, S.delta_o,
+                       S.delta_h)
     return u
 
 

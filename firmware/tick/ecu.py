@@ -176,7 +176,7 @@ def _estimate_fixed(P, T, S, ba, wa, road_intensity):
     F.reset = False
     fx.measure(T, F, F.counts)
     adapt, held = akf.off_model(P, S, ba, wa)
-    akf_kern.predict_into(A.phi, A.gamma, A.q_unit, K.x, K.P, 0.0, road_intensity, False)
+    akf_kern.predict_ws(A.phi, A.gamma, A.q_unit, K.x, K.P, 0.0, road_intensity, False, K.ws)
     for j in range(m):
         r = K.r[j]
         F.r_q[j] = to_fixed(r, MEAS_FRAC[j]) if math.isfinite(r) else 0
@@ -187,19 +187,15 @@ def _estimate_fixed(P, T, S, ba, wa, road_intensity):
         for j in range(m):
             if (skip >> j) & 1:
                 K.R[j, j] *= akf.SKIP_SCALE
-    gain, eps, Pn, Rn, rn, K.b_pow, hit, hph = akf_kern.gain(
+    K.b_pow, hit = akf_kern.gain_ws(
         A.H, K.P, K.R, K.r, S.resid_f, A.r_floor, A.r_scale, K.b_pow, A.forgetting,
-        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive))
-    K.P[:, :] = Pn
+        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive), K.ws)
     if skip:
         K.R[:, :] = K.R_saved
-    else:
-        K.R[:, :] = Rn
-    K.r[:] = rn
-    K.hph[:] = hph
-    K.innovation[:] = eps
+    K.hph[:] = K.ws.hph
+    K.innovation[:] = K.ws.eps
     K.guard_hits += hit
-    fx.quantize_gain(T, F, gain)
+    fx.quantize_gain(T, F, K.ws.K)
     fx.correct(T, F)
     for i in range(5):
         K.x[i] = to_float(F.x[i], STATE_FRAC[i])
