@@ -221,3 +221,14 @@ print(json.dumps(out))
     for name, (one, many) in got.items():
         assert one == many, (name, one, many)     # no tick allocates
         assert one[0] == one[1]                   # and what the call allocated, it freed
+
+
+def test_every_ecu_of_a_process_shares_its_layouts_dtype_objects():
+    """numba reads an argument's type from its dtype object, fast only for one it has seen:
+    a second ECU in a process (a campaign worker's next case) must reuse the first's dtype
+    objects (``layout.canonical``), or each of its ticks takes the slow path (18 us against
+    3.2 measured by tools.bench's step timer)."""
+    tables = build_tables(P)
+    a, b = Ecu(P, tables), Ecu(build(CFG), tables)
+    for name in ("P", "T", "S", "I", "O"):
+        assert getattr(a, name).dtype is getattr(b, name).dtype, name
