@@ -39,7 +39,7 @@ from typing import Optional
 
 import numpy as np
 
-from firmware import adc, ecu, safety
+from firmware import adc, safety
 from firmware import params as fp
 from hil.nodes import ID, Frame
 
