@@ -284,7 +284,6 @@ def predict_ws(phi, gamma, q_unit, x, P, u, q, with_x, W):
     for i in range(n):
         for j in range(n):
             P[i, j] = W.t2[i, j] + q * q_unit[i, j]
-    return
 
 
 @njit

@@ -6,8 +6,6 @@ The controllers: PID and BP-PID (``firmware.control.pid``, ``bppid``), LQR and G
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from firmware.actuator import CURRENT_MARGIN, DUTY_MAX_Q15, DUTY_MIN_Q15, Q15_ONE
