@@ -289,3 +289,33 @@ class Codec:
             return Decoded(m.name, raw, True, 0)
         return Decoded(m.name, {sig: raw[sig] * scale + offset
                                 for sig, scale, offset in plan.scaled}, True, 0)
+
+    def frame_tables(self, messages: tuple[str, ...], uses: tuple[tuple[str, str], ...]):
+        """The tables of the compiled frames (``hil.kernels.frames``) for ``messages`` (``MSG``
+        rows in that order) and the signals ``uses`` (``(message, signal)`` pairs: ``FIELD``
+        rows 0 .. len(uses) - 1 in that order; each message's ranged signals, the ones
+        ``decode`` checks, follow)."""
+        from hil.kernels import frames as kf
+
+        M = kf.table(kf.MSG, len(messages))
+        sig_of = {(m.name, s.name): s for m in self.db.messages for s in m.signals}
+        unknown = [u for u in uses if u not in sig_of]
+        if unknown:
+            raise ValueError(f"the DBC has no signal(s) {unknown}")
+        rows = [sig_of[u] for u in uses]
+        for i, name in enumerate(messages):
+            spec = self.specs[self.message(name).frame_id]
+            ranged = [sig_of[name, sig] for sig, _, _ in self._ranges[spec.msg_id]]
+            crc = safety.CRC8_INIT
+            for b in (spec.msg_id & 0xFFFF).to_bytes(2, "little"):
+                crc = safety._CRC_TABLE[crc ^ b]
+            M[i] = (spec.msg_id, spec.dlc, -1 if spec.counter_bit is None else spec.counter_bit,
+                    -1 if spec.checksum_byte is None else spec.checksum_byte, crc, len(rows),
+                    len(ranged))
+            rows += ranged
+        F = kf.table(kf.FIELD, len(rows))
+        for j, sig in enumerate(rows):
+            F[j] = (sig.start, (1 << sig.length) - 1,
+                    1 << (sig.length - 1) if sig.is_signed else 0, *raw_range(sig),
+                    *declared_raw_range(sig), sig.scale, sig.offset)
+        return M, F

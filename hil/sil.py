@@ -17,7 +17,7 @@ import numpy as np
 from firmware import params as fp
 from firmware import safety
 from firmware.modes import REASON_ROAD_HOLDING
-from hil import secoc, verdict
+from hil import fastsil, secoc, verdict
 from hil.codec import Codec
 from hil.config import CONTROLLERS, RUN_MODES as MODES, ConfigError, VehicleConfig
 from calib.ecu_params import build, with_controllers
@@ -98,12 +98,14 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         on_frame: Optional[Callable[[int, bytes], None]] = None,
         duration_s: Optional[float] = None, fixed_point: bool = False,
         fx_record: Optional[list] = None, key: Optional[bytes] = None,
-        hashed: Optional[bytearray] = None) -> tuple[dict, SilTrace]:
+        hashed: Optional[bytearray] = None, compiled: bool = True) -> tuple[dict, SilTrace]:
     """Run the SIL. Returns (report dict, per-tick trace). ``on_frame(id, data)`` sees every
     frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
     control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs); ``key``: the
     SecOC key (default: a new one for this run); ``hashed`` (a bytearray) receives every
-    tick's row of the trace hash (``hil.nodes.HASHED``), the per-tick golden traces."""
+    tick's row of the trace hash (``hil.nodes.HASHED``), the per-tick golden traces;
+    ``compiled``: the compiled lockstep loop (``hil.fastsil``) where it covers the run, else
+    (and with False) the nodes of ``hil.nodes`` frame by frame: the same bytes."""
     check_route(cfg, route)
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
@@ -116,7 +118,10 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
                        record=fx_record is not None, key=key)
     ecu_node.hashed = hashed
     app = app_node(codec, mode, p.dt_s, policy, script, key=key)
-    bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
+    if compiled and fastsil.eligible(plant, ecu_node, app) is None:
+        bus = fastsil.run(plant, ecu_node, app, on_frame=on_frame, progress=progress)
+    else:
+        bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
     if fx_record is not None:
         fx_record.extend(ecu_node.state.log)
     trace = merge_traces(plant.dt, plant.trace(), ecu_node.trace())

@@ -62,7 +62,8 @@ def cpu_model() -> str:
 
 def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     """Wall time of every ECU step (``firmware.tick.Ecu.step``: the compiled tick and its
-    call from Python) inside a SIL run (comfort-heavy auto route)."""
+    call from Python, as the nodes of ``hil run`` make it) inside a SIL run of those nodes
+    (comfort-heavy auto route)."""
     from firmware.tick import Ecu
     from hil import sil
     from hil.config import default_vehicle
@@ -80,7 +81,7 @@ def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     Ecu.step = timed
     try:
         sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
-                duration_s=duration_s, fixed_point=fixed_point)
+                duration_s=duration_s, fixed_point=fixed_point, compiled=False)
     finally:
         Ecu.step = real
     return np.array(times[100:], dtype=float) / 1000.0
@@ -91,7 +92,7 @@ TESTER_EVERY_TICKS = 20            # a request every 20 ms: 50 per second
 
 def ecu_tick_times_with_tester(ticks: int, tester: bool) -> tuple[np.ndarray, np.ndarray]:
     """The ECU node's tick (sensor frame in, command and status out: what the plant waits
-    for) in a lockstep SIL drive, with or without a tester's UDS requests between the ticks
+    for) in a lockstep SIL drive of the nodes of ``hil run``, with or without a tester's UDS requests between the ticks
     (every ``TESTER_EVERY_TICKS``: 0x22 of four DIDs, then 0x19 0x0A, a 99-byte answer in
     15 frames after the tester's flow control, in turn). Returns (tick times, request
     times) in microseconds."""
@@ -130,7 +131,7 @@ def ecu_tick_times_with_tester(ticks: int, tester: bool) -> tuple[np.ndarray, np
     nodes.EcuNode.tick = timed
     try:
         sil.run(default_vehicle(), load_route("full_road_section"), "comfort", 1,
-                duration_s=ticks * default_vehicle().sim.plant_dt_s)
+                duration_s=ticks * default_vehicle().sim.plant_dt_s, compiled=False)
     finally:
         nodes.EcuNode.tick = real
     return (np.array(tick_t[100:], dtype=float) / 1000.0, np.array(req_t, dtype=float) / 1000.0)
@@ -179,6 +180,7 @@ def c_core_tick_us(duration_s: float, repeats: int, tmp: Path) -> dict:
 # are in (the first matching prefix of the path below the project root); the compiled tick is
 # one entry (cProfile does not see inside it)
 STAGES = (
+    ("sil_loop", ("hil/kernels/silloop.py",)),               # the compiled loop (opaque)
     ("ecu_tick", ("firmware/tick/", "firmware/kernels/")),   # the compiled tick (opaque)
     ("frames", ("hil/codec.py", "firmware/safety.py")),
     ("ecu_python", ("firmware/",)),                          # firmware Python on the path

@@ -6,8 +6,8 @@ The compiled tick (``firmware.tick``) takes most of a minute to compile on these
 cache in tens of milliseconds after that (``calib.jitcache`` keys the cache by the compiled
 sources). Without this step every process that starts cold compiles it itself: the two test
 workers, every node process of a ``hil run``. Here the variants compile side by side in
-child processes (one per core), each driving a second of ``hil sim``; then the cache holds
-what every later process loads.
+child processes, each driving a second of ``hil sim`` (the compiled SIL loop) or warming up
+the nodes of ``hil run``; then the cache holds what every later process loads.
 
     python -m tools.jit [--json]
 """
@@ -24,11 +24,32 @@ from pathlib import Path
 from hil.cli import add_json_argument, emit
 
 ROOT = Path(__file__).resolve().parents[1]
-# a second of hil sim per variant: the tick, the plant, the sensors, the road, the report
+# a second of hil sim per variant (the compiled SIL loop with the tick, the plant, the sensors,
+# the road, the report), and the bench's nodes frame by frame (hil run's processes)
+HIL_SIM = ["-m", "hil", "sim", "--route", "full_road_section", "--duration", "1", "--json"]
 VARIANTS = {
-    "float": ["--mode", "auto"],
-    "fixed": ["--mode", "auto", "--fixed-point"],
+    "float": [*HIL_SIM, "--mode", "auto"],
+    "fixed": [*HIL_SIM, "--mode", "auto", "--fixed-point"],
+    "nodes": ["-c", "import tools.jit as j; j.nodes()"],
 }
+
+
+def nodes() -> None:
+    """The nodes of ``hil run`` warmed up (``hil.nodes.warm_up``: the ECU's tick called
+    from Python, on both paths; the plant's step and sensors)."""
+    from calib.fx_tables import build_tables
+    from hil import secoc, sil
+    from hil.codec import Codec
+    from hil.config import default_vehicle
+    from hil.nodes import EcuNode, PlantNode, warm_up
+    from hil.road import load_route
+
+    cfg, codec, key = default_vehicle(), Codec(), secoc.new_key()
+    p = sil.ecu_params(cfg, "auto")
+    build_tables(p)
+    for fixed in (False, True):
+        warm_up(EcuNode(p, codec, fixed_point=fixed, key=key))
+    warm_up(PlantNode(cfg, load_route("full_road_section"), 0, codec, key=key))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,9 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     procs = {}
-    for name, extra in VARIANTS.items():
-        cmd = [sys.executable, "-m", "hil", "sim", "--route", "full_road_section",
-               "--duration", "1", "--json", *extra]
+    for name, args_ in VARIANTS.items():
+        cmd = [sys.executable, *args_]
         procs[name] = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,
                                        stderr=subprocess.PIPE, text=True)
     failed = {}

@@ -15,7 +15,7 @@ import ctypes.util
 
 import numpy as np
 
-from firmware.kernels import external, load_library, njit
+from firmware.kernels import INTERPRETED, external, load_library, njit
 
 KEY_BYTES = 16
 
@@ -49,15 +49,19 @@ class Cmac:
     def __init__(self, key: bytes):
         if len(key) != KEY_BYTES:
             raise ValueError(f"an AES-128 key is {KEY_BYTES} bytes")
+        self.tag16 = np.zeros(16, np.uint8)       # (the whole tag, then truncated)
+        self.length = np.zeros(1, np.uint64)
+        if INTERPRETED:                           # (the interpreter's cmac: the key's handle)
+            self.ctx = len(_KEYS) + 1
+            _KEYS[self.ctx] = bytes(key)
+            return
         self.ctx = _lib.CMAC_CTX_new()
         if not self.ctx or _lib.CMAC_Init(self.ctx, bytes(key), KEY_BYTES,
                                           _lib.EVP_aes_128_cbc(), None) != 1:
             raise OSError("libcrypto: CMAC_Init failed")
-        self.tag16 = np.zeros(16, np.uint8)       # (the whole tag, then truncated)
-        self.length = np.zeros(1, np.uint64)
 
     def __del__(self):
-        if getattr(self, "ctx", None):
+        if getattr(self, "ctx", None) and not INTERPRETED:
             _lib.CMAC_CTX_free(self.ctx)
             self.ctx = None
 
@@ -74,3 +78,20 @@ def cmac(ctx, msg, n, tag16, length) -> bool:
     if CMAC_Update(ctx, msg.ctypes.data, n) != 1:
         return False
     return CMAC_Final(ctx, tag16.ctypes.data, length.ctypes.data) == 1
+
+
+_KEYS: dict[int, bytes] = {}      # NUMBA_DISABLE_JIT=1: the keys by handle
+
+
+if INTERPRETED:
+    def cmac(ctx, msg, n, tag16, length) -> bool:     # noqa: F811 - the interpreter's
+        """``cmac`` run by the interpreter (numba's external functions are not callable
+        there): the ``cryptography`` package's CMAC, which binds the same libcrypto."""
+        from cryptography.hazmat.primitives.ciphers import algorithms
+        from cryptography.hazmat.primitives.cmac import CMAC
+
+        c = CMAC(algorithms.AES(_KEYS[ctx]))
+        c.update(bytes(msg[:n]))
+        tag16[:] = np.frombuffer(c.finalize(), np.uint8)
+        length[0] = 16
+        return True

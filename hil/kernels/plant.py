@@ -90,8 +90,18 @@ def observe_into(x, zf, pp, has_actuator, acc, out, k):
 def step(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp):
     """One exact step: zeta(t+dt) = phi zeta(t), with the bridge's current limit. Returns
     (x after the step, zeta over the step, current limited, bump contact, tyre lifted)."""
-    fb, fw, contact, lifted = nonlinear(x, zf, pp)
     zeta = np.empty(N_AUG)
+    new = np.empty(5)
+    limited, contact, lifted = step_into(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp,
+                                         zeta, new)
+    return new, zeta, limited, contact, lifted
+
+
+@njit
+def step_into(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp, zeta, new):
+    """``step`` into ``zeta`` and ``new`` (x after the step; it may be ``x`` itself: x is read
+    into zeta first). Returns (current limited, bump contact, tyre lifted)."""
+    fb, fw, contact, lifted = nonlinear(x, zf, pp)
     for i in range(5):
         zeta[i] = x[i]
     zeta[ZF] = zf
@@ -111,13 +121,12 @@ def step(phi, x, zf, zf_next, volt, v_dc, enabled, dt, pp):
             lim = (math.copysign(pp[P_IMAX], i_end) - base) / phi[CUR, VOLT]
             zeta[VOLT] = min(v_dc, max(-v_dc, lim))
             limited = True
-    new = np.empty(5)
     for i in range(5):
         s = 0.0
         for j in range(N_AUG):
             s += phi[i, j] * zeta[j]
         new[i] = s
-    return new, zeta, limited, contact, lifted
+    return limited, contact, lifted
 
 
 @njit
@@ -125,18 +134,30 @@ def advance(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l,
     """``QuarterCarPlant.step`` after its input checks: the bridge, the discretisation of the
     efficiency branch, the exact step and (``track``) the ledger's sums in ``acc``. Returns
     (x after the step, current limited, bump contact, tyre lifted)."""
+    new = x.copy()
+    limited, contact, lifted = advance_into(phis, flows, new, zf, zf_next, duty, regen,
+                                            enabled, dt, pp, v, ind_l, track, acc,
+                                            np.empty(N_AUG), np.empty(flows.shape[2]))
+    return new, limited, contact, lifted
+
+
+@njit
+def advance_into(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l, track,
+                 acc, zeta, q):
+    """``advance`` with the state ``x`` stepped in place and its scratch given (``zeta``:
+    N_AUG, ``q``: one per energy flow): no allocation. Returns (current limited, bump
+    contact, tyre lifted)."""
     if not enabled and x[4] != 0.0:         # the bridge opens: the inductor's energy is dumped
         acc[A_FLYBACK] += inductor_energy(x[4], ind_l)
-        x = x.copy()
         x[4] = 0.0
     motoring = is_motoring(x, pp) if enabled else True
     e, m = int(enabled), int(motoring)
     v_dc = v[1] if regen else v[0]
     volt = duty * v_dc if enabled else 0.0
-    new, zeta, limited, contact, lifted = step(phis[e, m], x, zf, zf_next, volt, v_dc,
-                                                enabled, dt, pp)
+    limited, contact, lifted = step_into(phis[e, m], x, zf, zf_next, volt, v_dc, enabled, dt,
+                                         pp, zeta, x)
     if track:
-        q = quadratic_forms(flows[e, m], zeta)
+        quadratic_forms_into(flows[e, m], zeta, q)
         acc[A_ROAD] += q[0]
         acc[A_NL] += q[1]
         if regen:
@@ -149,9 +170,9 @@ def advance(phis, flows, x, zf, zf_next, duty, regen, enabled, dt, pp, v, ind_l,
         acc[A_EM] += q[6]
         acc[A_ACT] += q[7]
         acc[A_SCREW] += q[6] - q[7]
-        acc[A_MECH] = mech_energy(new, zf_next, pp)
-        acc[A_IND] = inductor_energy(new[4], ind_l)
-    return new, limited, contact, lifted
+        acc[A_MECH] = mech_energy(x, zf_next, pp)
+        acc[A_IND] = inductor_energy(x[4], ind_l)
+    return limited, contact, lifted
 
 
 @njit
@@ -176,15 +197,20 @@ def is_motoring(x, pp):
 @njit
 def quadratic_forms(flows, zeta):
     """flows @ outer(zeta, zeta).ravel(): the step's energy flows."""
-    n = zeta.shape[0]
     out = np.empty(flows.shape[0])
+    quadratic_forms_into(flows, zeta, out)
+    return out
+
+
+@njit
+def quadratic_forms_into(flows, zeta, out) -> None:
+    n = zeta.shape[0]
     for f in range(flows.shape[0]):
         s = 0.0
         for a in range(n):
             for b in range(n):
                 s += flows[f, a * n + b] * (zeta[a] * zeta[b])
         out[f] = s
-    return out
 
 
 @njit

@@ -21,6 +21,13 @@ def quantise5(v0, v1, v2, v3, v4, z, std, gain, range_min, lsb, full):
 def quantise(values, z, std, gain, range_min, lsb, full):
     """to_counts(channel, value + noise) for every channel (noise = z * std * gain)."""
     out = np.empty(values.shape[0], dtype=np.int64)
+    quantise_into(values, z, std, gain, range_min, lsb, full, out)
+    return out
+
+
+@njit
+def quantise_into(values, z, std, gain, range_min, lsb, full, out) -> None:
+    """``quantise`` into ``out``."""
     for i in range(values.shape[0]):
         v = values[i] + z[i] * std[i] * gain[i]
         if math.isnan(v):
@@ -33,4 +40,3 @@ def quantise(values, z, std, gain, range_min, lsb, full):
             out[i] = full[i]
         else:
             out[i] = int(math.floor(raw + 0.5))
-    return out
