@@ -290,6 +290,19 @@ class Codec:
         return Decoded(m.name, {sig: raw[sig] * scale + offset
                                 for sig, scale, offset in plan.scaled}, True, 0)
 
+    def bus_tables(self):
+        """The compiled nodes' tables (``hil.kernels.bus``): (MSG, FIELD, the fault bit of
+        each of ECU_STATUS's fault signals), laid out once per codec."""
+        if getattr(self, "_bus", None) is None:
+            import numpy as np
+
+            from hil.kernels import bus
+
+            uses = bus.USES + tuple(("ECU_STATUS", sig) for sig in FAULT_SIGNALS.values())
+            M, F = self.frame_tables(bus.MESSAGES, uses)
+            self._bus = (M, F, np.array(list(FAULT_SIGNALS), dtype=np.int64))
+        return self._bus
+
     def frame_tables(self, messages: tuple[str, ...], uses: tuple[tuple[str, str], ...]):
         """The tables of the compiled frames (``hil.kernels.frames``) for ``messages`` (``MSG``
         rows in that order) and the signals ``uses`` (``(message, signal)`` pairs: ``FIELD``

@@ -13,26 +13,22 @@ SecOC or a node that already ran take ``hil.nodes.run_in_process`` instead.
 
 from __future__ import annotations
 
-from array import array
-from collections import Counter
+import hashlib
 from typing import Callable, Optional
 
 import numpy as np
 
+from firmware.tick.layout import view
 from hil import secoc
-from hil.codec import FAULT_SIGNALS
+from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels import silloop as kl
-from hil.kernels.cmac import Cmac
-from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode
-from firmware import safety
-from firmware.tick.layout import view
+from hil.nodes import REQ_KINDS, AppNode, EcuNode, PlantNode
 
 CHUNK = 16384            # ticks between Python's turns (a multiple of the noise block, 256)
 _OWN = {"PLANT": ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS",
                   "PLANT_SENSORS"),
-        "ECU": ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND"),
         "APP": ("DRIVER_REQUEST",)}
 # the order in which a run's frames first cross the bus (tick 0): the bus count's order
 _BUS_ORDER = ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS", "PLANT_SENSORS",
@@ -49,17 +45,21 @@ def eligible(plant: PlantNode, ecu_node: EcuNode, app: AppNode) -> Optional[str]
         return f"the driver policy {app.policy!r}"
     if any(cb is not None for cb in (app.on_request, app.on_faults, app.on_recommend)):
         return "the driver app's callbacks"
-    if ecu_node.cmd_sec is None or plant.cmd_auth is None or app.req_sec is None:
+    if not ecu_node.E[0]["secured"] or plant.cmd_auth is None or app.req_sec is None:
         return "a run without SecOC"
+    if not (ecu_node.key_sha == _sha(plant.cmd_auth.mac.key) == _sha(app.req_sec.mac.key)):
+        return "nodes with different SecOC keys"
     if ecu_node.state.log is not None:
         return "the fixed-point path's C parity record"
     if not ecu_node.lockstep or ecu_node.uds is not None:
         return "a realtime or diagnosed ECU node"
     if plant.k or ecu_node.k or app.n_status or ecu_node.pending:
         return "nodes that already ran"
-    if plant.noise_step is not None and plant.noise_step[1] is None:
-        return "a noise step without a gain"
     return None
+
+
+def _sha(key: bytes) -> str:
+    return hashlib.sha256(key).hexdigest()
 
 
 def _noise_tick(plant: PlantNode) -> int:
@@ -74,7 +74,7 @@ def _noise_tick(plant: PlantNode) -> int:
     return k
 
 
-def _sil_state(plant: PlantNode, ecu_node: EcuNode, app: AppNode, log_on: bool) -> np.ndarray:
+def _sil_state(plant: PlantNode, app: AppNode, log_on: bool) -> np.ndarray:
     za = kf.table(kl.SIL, 1)
     z = view(za)
     a = plant.active
@@ -91,11 +91,6 @@ def _sil_state(plant: PlantNode, ecu_node: EcuNode, app: AppNode, log_on: bool) 
     z.gain[:] = plant.sensors.noise_gain
     z.sup_std, z.sup_min, z.sup_lsb, z.sup_full = (sup.noise_std, sup.range_min, sup.lsb,
                                                    2 ** sup.bits - 1)
-    z.speed_raw = z.supply_new = -1
-    z.req_kind, z.req_mode, z.req_id = ecu_node.req
-    z.seq = ecu_node.seq
-    z.last_rec[:] = -1
-    z.p_status, z.p_rec = ecu_node.p_status, ecu_node.p_rec
     z.policy = kl.POLICIES.index(app.policy)
     z.app_mode, z.reaction, z.app_p_status = app.mode, app.reaction_ticks, app.p_status
     z.kind, z.rmode, z.rid = app.kind, app.req_mode, app.req_id
@@ -104,41 +99,21 @@ def _sil_state(plant: PlantNode, ecu_node: EcuNode, app: AppNode, log_on: bool) 
     return za
 
 
-def _receivers(plant: PlantNode, ecu_node: EcuNode) -> np.ndarray:
-    rx = kf.rx_table(5)
-    pairs = ((kl.R_SPEED, ecu_node.rx_specs[ID["VEHICLE_SPEED"]], ecu_node.rx[ID["VEHICLE_SPEED"]]),
-             (kl.R_SUPPLY, ecu_node.rx_specs[ID["PLANT_SUPPLY"]], ecu_node.rx[ID["PLANT_SUPPLY"]]),
-             (kl.R_SENSORS, ecu_node.sensors_spec, ecu_node.rx[ID["PLANT_SENSORS"]]),
-             (kl.R_REQ, ecu_node.rx_specs[ID["DRIVER_REQUEST"]],
-              ecu_node.rx[ID["DRIVER_REQUEST"]]),
-             (kl.R_CMD, plant.codec.specs[ID["ACTUATOR_CMD"]], plant.cmd_rx))
-    for r, spec, st in pairs:
-        rx[r] = (spec.counter_bit is not None, spec.timeout_ticks, spec.min_interval_ticks,
-                 spec.recover_frames, st.valid, st.good_run, st.last_counter, st.last_rx_tick,
-                 st.faults)
+def _plant_receiver(plant: PlantNode) -> np.ndarray:
+    """The plant's receiver of ACTUATOR_CMD (its own spec: COUNTER and CHECKSUM checked)."""
+    rx, st = kf.rx_table(1), plant.cmd_rx
+    rx[0] = (1, 0, 0, 1, st.valid, st.good_run, st.last_counter, st.last_rx_tick, st.faults)
     return rx
 
 
-def _put_back_receivers(rx, plant: PlantNode, ecu_node: EcuNode) -> None:
-    for r, st in ((kl.R_SPEED, ecu_node.rx[ID["VEHICLE_SPEED"]]),
-                  (kl.R_SUPPLY, ecu_node.rx[ID["PLANT_SUPPLY"]]),
-                  (kl.R_SENSORS, ecu_node.rx[ID["PLANT_SENSORS"]]),
-                  (kl.R_REQ, ecu_node.rx[ID["DRIVER_REQUEST"]]), (kl.R_CMD, plant.cmd_rx)):
-        row = rx[r]
-        st.valid, st.good_run = bool(row["valid"]), int(row["good_run"])
-        st.last_counter, st.last_rx_tick = int(row["last_counter"]), int(row["last_rx_tick"])
-        st.faults = int(row["faults"])
-
-
-def _secoc(codec, plant: PlantNode, ecu_node: EcuNode, app: AppNode) -> np.ndarray:
+def _secoc(codec, plant: PlantNode, app: AppNode) -> np.ndarray:
+    """The plant's verifier of ACTUATOR_CMD and the app's signer of DRIVER_REQUEST."""
     sec = kf.table(ks.SEC, 4)
-    for s, name, obj in ((kl.S_CMD_TX, "ACTUATOR_CMD", ecu_node.cmd_sec),
-                         (kl.S_CMD_RX, "ACTUATOR_CMD", plant.cmd_auth),
-                         (kl.S_REQ_TX, "DRIVER_REQUEST", app.req_sec),
-                         (kl.S_REQ_RX, "DRIVER_REQUEST", ecu_node.req_auth)):
+    for s, name, fv, rejected in ((kb.S_CMD_RX, "ACTUATOR_CMD", plant.cmd_auth.latest,
+                                   plant.cmd_auth.rejected),
+                                  (kb.S_REQ_TX, "DRIVER_REQUEST", app.req_sec.fv, 0)):
         lay = secoc.layout(codec, name)
-        fv = obj.fv if isinstance(obj, secoc.Sender) else obj.latest
-        sec[s] = (lay.fv_byte, lay.mac_byte, fv, getattr(obj, "rejected", 0))
+        sec[s] = (lay.fv_byte, lay.mac_byte, fv, rejected)
     return sec
 
 
@@ -150,16 +125,9 @@ def run(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
     if why is not None:
         raise ValueError(f"the compiled SIL loop does not cover {why}")
     codec = plant.codec
-    uses = kl.USES + tuple(("ECU_STATUS", sig) for sig in FAULT_SIGNALS.values())
-    M, F = codec.frame_tables(kl.MESSAGES, uses)
-    fault_bits = np.array(list(FAULT_SIGNALS), dtype=np.int64)
-    rx, sec = _receivers(plant, ecu_node), _secoc(codec, plant, ecu_node, app)
-    key = ecu_node.cmd_sec.mac.key
-    if plant.cmd_auth.mac.key != key or app.req_sec.mac.key != key:
-        raise ValueError("the compiled SIL loop runs one SecOC key on every node")
-    mac = Cmac(key)
-    crypto = (mac.ctx, np.zeros(32, np.uint8), mac.tag16, mac.length)
-    za = _sil_state(plant, ecu_node, app, on_frame is not None)
+    M, F, fault_bits = codec.bus_tables()
+    prx, sec = _plant_receiver(plant), _secoc(codec, plant, app)
+    za = _sil_state(plant, app, on_frame is not None)
     z = view(za)
     a, n = plant.active, plant.n
     x = np.array(a.x, dtype=float)
@@ -173,8 +141,7 @@ def run(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
     segment = np.ascontiguousarray(plant.timeline.segment, dtype=np.int64)
     speed = np.ascontiguousarray(plant.timeline.speed_mps, dtype=float)
     rows = np.zeros((n, 9), np.int64)
-    ff = np.zeros((kl.NMSG, 32), np.int64)
-    ff_first = np.zeros((kl.NMSG, 32), np.int64)
+    e = ecu_node
     hashbuf = np.zeros(CHUNK * kl.ROW_BYTES, np.uint8)
     reqlog = np.zeros((CHUNK, 3), np.int64)
     cap = CHUNK * kl.FRAMES_PER_TICK if on_frame is not None else 1
@@ -196,11 +163,11 @@ def run(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
         if progress is not None:
             k1 = min(k1, (k0 // report_every + 1) * report_every)
         z.nlog, z.hpos, z.nreq = 0, 0, 0
-        status = kl.run(za, M, F, fault_bits, rx, sec, crypto, a._phis, a._flows, x, a._pp,
-                        a._v, a._acc, plant.zf, speed, true_grade, segment, noise, sup_noise,
-                        sens._std, sens._min, sens._lsb, sens._full, st.P, st.T, st.S, st.I,
-                        st.O, plant.obs, rows, hashbuf, ff, ff_first, reqlog, log_id, log_dlc,
-                        log_data, k1)
+        status = kl.run(za, e.E, M, F, fault_bits, e.RX, prx, e.SEC, sec, e.crypto, a._phis,
+                        a._flows, x, a._pp, a._v, a._acc, plant.zf, speed, true_grade, segment,
+                        noise, sup_noise, sens._std, sens._min, sens._lsb, sens._full, st.P,
+                        st.T, st.S, st.I, st.O, plant.obs, rows, hashbuf, e.ff, e.ff_first,
+                        reqlog, log_id, log_dlc, log_data, k1)
         row_bytes = hashbuf[:z.hpos].tobytes()
         ecu_node.sha.update(row_bytes)
         if ecu_node.hashed is not None:
@@ -214,15 +181,16 @@ def run(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
         if progress is not None and status == kl.OK and (z.k % report_every == 0
                                                          or z.k >= n):
             progress(int(z.k), n)
-    _put_back(z, x, rows, ff, ff_first, rx, sec, plant, ecu_node, app)
+    _put_back(z, x, rows, prx, sec, plant, ecu_node, app)
     if status != kl.OK:
         raise RuntimeError(f"lockstep broken at tick {plant.k}")
-    return {name: int(z.seen[kl.MESSAGES.index(name)]) for name in _BUS_ORDER
-            if z.seen[kl.MESSAGES.index(name)]}
+    return {name: int(z.seen[kb.MESSAGES.index(name)]) for name in _BUS_ORDER
+            if z.seen[kb.MESSAGES.index(name)]}
 
 
-def _put_back(z, x, rows, ff, ff_first, rx, sec, plant, ecu_node, app) -> None:
-    """The nodes' state after the loop, as ``run_in_process`` leaves it."""
+def _put_back(z, x, rows, prx, sec, plant, ecu_node, app) -> None:
+    """The nodes' state after the loop, as ``run_in_process`` leaves it (the ECU node's lives
+    in its own records, which the loop ran on)."""
     a = plant.active
     a.x, a.zf = x, float(z.zf)
     a.bump_contacts += int(z.bump_contacts)
@@ -236,35 +204,22 @@ def _put_back(z, x, rows, ff, ff_first, rx, sec, plant, ecu_node, app) -> None:
     plant.bad_cmd_frames, plant.stale_cmd_frames = int(z.bad_cmd), int(z.stale_cmd)
     plant.missed_cmds, plant.fallback_ticks = int(z.missed), int(z.fallback_ticks)
     plant.auth_failures, plant.auth_failures_booked = int(z.auth_failures), int(z.auth_booked)
-    for node in (plant, ecu_node, app):
+    for node in (plant, app):
         for name in _OWN[node.name]:
-            i = kl.MESSAGES.index(name)
+            i = kb.MESSAGES.index(name)
             if z.sent[i]:
                 node.tx.sent[name] += int(z.sent[i])
                 node.tx.counters[name] = int(z.ctr[i])   # (Tx keeps one for every message)
-    _put_back_receivers(rx, plant, ecu_node)
-    ecu_node.cmd_sec.fv = int(sec[kl.S_CMD_TX]["fv"])
-    app.req_sec.fv = int(sec[kl.S_REQ_TX]["fv"])
-    for s, rcv in ((kl.S_CMD_RX, plant.cmd_auth), (kl.S_REQ_RX, ecu_node.req_auth)):
-        rcv.latest, rcv.rejected = int(sec[s]["fv"]), int(sec[s]["rejected"])
-    e = ecu_node
-    e.k = int(z.ek)
-    e.speed_raw = None if z.speed_raw < 0 else int(z.speed_raw)
-    e.supply_new = None if z.supply_new < 0 else int(z.supply_new)
-    e.req = (int(z.req_kind), int(z.req_mode), int(z.req_id))
-    e.awaiting, e.link_faults, e.seq = int(z.awaiting), int(z.link_faults), int(z.seq)
-    e.status_faults = int(z.status_faults)
-    if z.last_rec[0] >= 0:
-        lr = [int(v) for v in z.last_rec]
-        e.last_rec = (lr[0], lr[1], lr[2], bool(lr[3]))
-    e.rows = array("q", rows[:e.k].tobytes())
-    stamps = sorted((int(ff_first[i, b]), i, b) for i, b in zip(*np.nonzero(ff)))
-    for _, i, b in stamps:
-        label = safety.FAULT_NAMES.get(1 << int(b), f"bit{b}")
-        e.frame_faults[f"{kl.MESSAGES[i]}:{label}"] += int(ff[i, b])
+    st, row = plant.cmd_rx, prx[0]
+    st.valid, st.good_run = bool(row["valid"]), int(row["good_run"])
+    st.last_counter, st.last_rx_tick = int(row["last_counter"]), int(row["last_rx_tick"])
+    st.faults = int(row["faults"])
+    plant.cmd_auth.latest = int(sec[kb.S_CMD_RX]["fv"])
+    plant.cmd_auth.rejected = int(sec[kb.S_CMD_RX]["rejected"])
+    app.req_sec.fv = int(sec[kb.S_REQ_TX]["fv"])
+    ecu_node.rows.frombytes(rows[:ecu_node.k].tobytes())
     app.n_status, app.t = int(z.n_status), int(z.t)
     app.kind, app.req_mode, app.req_id = int(z.kind), int(z.rmode), int(z.rid)
     app._shown, app._shown_since, app._answered = int(z.shown), int(z.shown_since), \
         int(z.answered)
     app._chosen = bool(z.chosen)
-

@@ -34,13 +34,19 @@ from typing import Callable, Iterable, Optional
 import numpy as np
 
 from calib.fx_tables import build_tables
-from firmware import ecu, safety
+from firmware import safety
 from firmware.diag import uds
 from firmware.modes import REASON_NONE
 from firmware import params as fp
 from firmware.tick import Ecu
+from firmware.tick.layout import view
 from hil import secoc
-from hil.codec import Codec, fault_signals, fault_word
+from hil.kernels import bus as kb
+from hil.kernels import ecunode as ken
+from hil.kernels import frames as kf
+from hil.kernels import secoc as ks
+from hil.kernels.cmac import Cmac
+from hil.codec import Codec, fault_word
 from hil.config import VehicleConfig
 from hil.drive import road_at_ticks
 from hil.plant import OBS, QuarterCarPlant
@@ -54,7 +60,6 @@ _DB = Codec()
 ID = {m.name: m.frame_id for m in _DB.db.messages}
 NAME_OF = {v: k for k, v in ID.items()}
 OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
-UNKNOWN_GRADE_ON_BUS = 7
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 
 # PlantNode.obs columns after plant.OBS: the duty applied, the passive fallback, and the
@@ -332,13 +337,16 @@ _FORGED = object()   # a secured frame whose MAC or freshness failed
 
 
 class EcuNode:
-    """The firmware behind its CAN receive and transmit path. Frame validity is
-    ``firmware.safety``: an invalid PLANT_SENSORS frame, or a tick without one (SIM_TICK),
-    feeds no counts (the ADC marks the channels faulty, the ECU goes fail-safe the same tick),
-    VEHICLE_SPEED times out after 3 periods and is rate-supervised (a copy sooner than half
-    its period is not used), an invalid DRIVER_REQUEST is ignored; every frame fault is
-    reported in the fault word. ECU_STATUS carries the OR of the fault words since the last
-    ECU_STATUS, so a one-tick fault reaches the driver too."""
+    """The firmware behind its CAN receive and transmit path, compiled
+    (``hil.kernels.ecunode``: the receive table and the tick with its frames, the same
+    functions the compiled SIL loop runs). Frame validity is ``firmware.safety``: an invalid
+    PLANT_SENSORS frame, or a tick without one (SIM_TICK), feeds no counts (the ADC marks the
+    channels faulty, the ECU goes fail-safe the same tick), VEHICLE_SPEED times out after 3
+    periods and is rate-supervised (a copy sooner than half its period is not used), an
+    invalid DRIVER_REQUEST is ignored; every frame fault is reported in the fault word.
+    ECU_STATUS carries the OR of the fault words since the last ECU_STATUS, so a one-tick
+    fault reaches the driver too. Without a ``key`` the node neither signs nor verifies
+    (the unsecured path, for tests of the receive path only)."""
 
     name = "ECU"
 
@@ -348,101 +356,130 @@ class EcuNode:
         dt = params.dt_s
         # the compiled ECU (firmware.tick), on the fixed-point path with its tables
         self.state = Ecu(params, build_tables(params) if fixed_point else None, record)
-        self.tx = Tx(codec, allowed=safety.TX_MESSAGES)
-        # (with SecOC the CHECKSUM is written once, after the MAC: Sender.protect)
-        self.pack_cmd = codec.packer("ACTUATOR_CMD", ("DUTY", "REGEN", "ENABLE", "SENSOR_SEQ"),
-                                     checksum=key is None)
-        self.unpack_sensors = codec.unpacker("PLANT_SENSORS", (
-            "BODY_ACCEL_RAW", "WHEEL_ACCEL_RAW", "SUSP_DEFL_RAW", "MOTOR_CURRENT_RAW", "COUNTER"))
-        self.sensors_spec = codec.specs[ID["PLANT_SENSORS"]]
-        self.p_status = period_ticks(codec, "ECU_STATUS", dt)
-        self.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
-        # receive supervision: the firmware's table (safety.RX_CHECKS) on the DBC's layout
+        self.M, self.F, self.fault_bits = codec.bus_tables()
+        # the node's state (hil.kernels.ecunode.ECU_NODE) and its receivers: the firmware's
+        # table (safety.RX_CHECKS) on the DBC's layout, in hil.kernels.bus' R_* rows
+        self.E = kf.table(ken.ECU_NODE, 1)
+        e = view(self.E)
+        e.speed_raw = e.supply_new = -1
+        e.seq = 3                           # COUNTER mod 4 of the sensor frame being answered
+        e.last_rec[:] = -1
+        e.p_status = period_ticks(codec, "ECU_STATUS", dt)
+        e.p_rec = period_ticks(codec, "MODE_RECOMMEND", dt)
+        e.lockstep, e.secured = lockstep, key is not None
         self.rx_specs = {ID[c.message]: rx_spec(codec, c, dt) for c in safety.RX_CHECKS}
-        self.spec_speed = self.rx_specs[ID["VEHICLE_SPEED"]]
-        self.spec_supply = self.rx_specs[ID["PLANT_SUPPLY"]]
-        self.rx = {fid: safety.RxState() for fid in self.rx_specs}
-        # SecOC: the command signed, the driver's request verified (key None: unsecured)
-        self.cmd_sec = secoc.sender(codec, key, "ACTUATOR_CMD")
-        self.req_auth = secoc.receiver(codec, key, "DRIVER_REQUEST")
+        self.RX = kf.rx_table(len(_RX_ROWS))
+        self._mi = {}                       # frame ID -> message index of the receive table
+        for name, (row, mi) in _RX_ROWS.items():
+            spec = self.rx_specs[ID[name]]
+            r = self.RX[row]
+            r["cc"], r["timeout"] = spec.counter_bit is not None, spec.timeout_ticks
+            r["min_interval"], r["recover"] = spec.min_interval_ticks, spec.recover_frames
+            self._mi[ID[name]] = mi
+        # SecOC: the command signed, the driver's request verified (libcrypto's CMAC)
+        self.SEC = kf.table(ks.SEC, 4)
+        for row, name in ((kb.S_CMD_TX, "ACTUATOR_CMD"), (kb.S_REQ_RX, "DRIVER_REQUEST")):
+            lay = secoc.layout(codec, name)
+            self.SEC[row]["fv_byte"], self.SEC[row]["mac_byte"] = lay.fv_byte, lay.mac_byte
+        self.mac = Cmac(key) if key is not None else None
+        self.key_sha = hashlib.sha256(key).hexdigest() if key is not None else None
+        self.crypto = (self.mac.ctx if self.mac else 0, np.zeros(32, np.uint8),
+                       self.mac.tag16 if self.mac else np.zeros(16, np.uint8),
+                       self.mac.length if self.mac else np.zeros(1, np.uint64))
+        self.ff = np.zeros((kb.NMSG, 32), np.int64)        # frame faults per message, bit
+        self.ff_first = np.zeros((kb.NMSG, 32), np.int64)
+        self._faults_py: dict[str, list[int]] = {}         # (missing, unknown IDs): [stamp, n]
+        self._buf = np.zeros(8, np.uint8)
+        self._out_mi, self._out = np.zeros(4, np.int64), np.zeros((4, 8), np.uint8)
+        self._frame_of = [(ID[name], self.M[i]["dlc"]) for i, name in enumerate(kb.MESSAGES)]
+        self._hrow = np.zeros(ken.ROW_BYTES, np.uint8)
+        self._trow = np.zeros(len(ECU_TRACE), np.int64)
         # SIM_TICK (the simulated timer tick of a suppressed sensor frame) only in lockstep;
         # DIAG_REQUEST: a tester's UDS over ISO-TP (hil.diag.UdsServer, made on first use)
         self.listen = set(self.rx_specs) | {ID["DIAG_REQUEST"]} | (
             {ID["SIM_TICK"]} if lockstep else set())
         self.uds = None
+        self.diag_sent = 0                  # DIAG_RESPONSE frames sent
         # known frames of others (and SIM_TRUTH): on_frame does nothing with them
         self.ignore = frozenset(ID.values()) - self.listen
-        self.k = 0
-        self.pending: deque = deque()       # sensor frames not yet processed
-        self.speed_raw: Optional[int] = None
-        self.supply_new: Optional[int] = None   # a supply sample that arrived since the last tick
-        self.req = (fp.REQ_NONE, 0, 0)
-        self.awaiting = 0                   # MODE_RECOMMEND sent, answer not yet received
-        self.held_cmd: Optional[Frame] = None   # lockstep: ACTUATOR_CMD waiting for it
-        self.link_faults = 0
-        self.seq = 3                        # COUNTER mod 4 of the sensor frame being answered
-        self.status_faults = 0              # OR of the fault words since the last ECU_STATUS
-        self.frame_faults: Counter = Counter()
-        self.last_rec = None
-        self.unrecorded = None              # the last tick, until record() books it
+        self.pending: deque = deque()       # sensor samples not yet processed
+        self.held_cmd: Optional[Frame] = None   # lockstep: ACTUATOR_CMD waiting for answers
+        self.unrecorded = False             # the last tick, until record() books it
         self.resets = 0                     # ECU resets a tester asked for (UDS 0x11)
         self.sha = hashlib.sha256()
         self.rows = array("q")              # per tick: ECU_TRACE
         self.hashed: Optional[bytearray] = None   # (a bytearray: every tick's hashed row)
 
-    def _note(self, faults: int, name: str) -> None:
-        self.link_faults |= faults
-        for label in safety.fault_names(faults):
-            self.frame_faults[f"{name}:{label}"] += 1
+    # the node's state, read (and written) by name
+    @property
+    def k(self) -> int:
+        return int(self.E[0]["k"])
+
+    @property
+    def link_faults(self) -> int:
+        """The frame faults of the tick being received (reported with its ECU tick)."""
+        return int(self.E[0]["link_faults"])
+
+    @property
+    def req(self) -> tuple[int, int, int]:
+        """The driver's latest valid request: (kind, mode, id)."""
+        e = self.E[0]
+        return int(e["req_kind"]), int(e["req_mode"]), int(e["req_id"])
+
+    @property
+    def awaiting(self) -> int:
+        """MODE_RECOMMEND frames sent and not yet answered."""
+        return int(self.E[0]["awaiting"])
+
+    @property
+    def rx(self) -> dict:
+        """The receivers by frame ID (``firmware.safety.RxState``'s fields, read through)."""
+        rows = self.RX.view(np.recarray)
+        return {ID[name]: rows[row] for name, (row, _) in _RX_ROWS.items()}
+
+    @property
+    def frame_faults(self) -> Counter:
+        """Frame faults seen, by ``MESSAGE:fault``, in the order first seen."""
+        names = safety.FAULT_NAMES
+        found = [(int(self.ff_first[i, b]), f"{kb.MESSAGES[i]}:{names.get(1 << int(b), b)}",
+                  int(self.ff[i, b])) for i, b in zip(*np.nonzero(self.ff))]
+        found += [(stamp, label, n) for label, (stamp, n) in self._faults_py.items()]
+        return Counter({label: n for _, label, n in sorted(found)})
+
+    def _note_py(self, faults: int, label: str) -> None:
+        """A frame fault the receive table does not see (a missing frame, an unknown ID)."""
+        e = self.E[0]
+        e["link_faults"] |= faults
+        entry = self._faults_py.get(label)
+        if entry is None:
+            entry = self._faults_py[label] = [int(e["ff_stamp"]), 0]
+            e["ff_stamp"] += 1
+        entry[1] += 1
 
     def on_frame(self, fid: int, data: bytes) -> list[Frame]:
         if fid in self.ignore:
             return []
-        if fid == ID["SIM_TICK"]:
+        if fid == _SIM_TICK:
             self.pending.append(MISSING)
             return []
-        if fid == ID["DIAG_REQUEST"]:
+        if fid == _DIAG_REQUEST:
             return self._diag(data)
-        rx = self.rx.get(fid)
-        if fid == ID["PLANT_SENSORS"]:
-            v, faults = self.unpack_sensors(data, rx, self.k)
-            if v is not None:
-                self.pending.append(v[:4])
-                self.seq = v[4] & 0x3
-                return []
-            self.pending.append(None)
-            if len(data) > self.sensors_spec.counter_bit // 8:
-                self.seq = safety.counter_of(self.sensors_spec, data) & 0x3   # (as sent)
-            self._note(faults, "PLANT_SENSORS")
+        mi = self._mi.get(fid)
+        if mi is None:
+            self._note_py(safety.FAULT_UNKNOWN_ID, f"0x{fid:X}")
             return []
-        if fid == ID["DRIVER_REQUEST"] and self.req_auth is not None and \
-                self.req_auth.forged(data):
-            self._note(safety.FAULT_AUTH, "DRIVER_REQUEST")   # forged or replayed: not the
-            return []                                         # app's answer, state untouched
-        d = self.codec.decode(fid, data, rx, self.k, scaling=False,
-                              spec=self.rx_specs.get(fid))
-        if fid == ID["VEHICLE_SPEED"]:
-            if d.ok:
-                self.speed_raw = int(d.signals["SPEED"])
-            else:
-                self._note(d.faults, "VEHICLE_SPEED")
-        elif fid == ID["PLANT_SUPPLY"]:
-            if d.ok:
-                self.supply_new = int(d.signals["SUPPLY_VOLTAGE_RAW"])
-            else:
-                self._note(d.faults, "PLANT_SUPPLY")
-        elif fid == ID["DRIVER_REQUEST"]:
-            self.awaiting = max(0, self.awaiting - 1)
-            if d.ok:
-                s = d.signals
-                self.req = (int(s["REQ_KIND"]), int(s["REQ_MODE"]), int(s["REQ_ID"]))
-            else:
-                self._note(d.faults, "DRIVER_REQUEST")
-            if self.held_cmd is not None and not self.awaiting:
-                cmd, self.held_cmd = self.held_cmd, None
-                return [cmd]
-        else:
-            self._note(d.faults, f"0x{fid:X}")
+        n = len(data)
+        buf = self._buf
+        buf[:] = 0
+        buf[:min(n, 8)] = np.frombuffer(data[:8], np.uint8)
+        got = ken.receive(self.E, self.M, self.F, self.RX, self.SEC, self.crypto, self.ff,
+                          self.ff_first, mi, buf, n)
+        if mi == kb.M_SENSORS:
+            self.pending.append(tuple(self.E[0]["counts"].tolist()) if got == ken.RX_SAMPLE
+                                else None)
+        elif got == ken.RX_RELEASE and self.held_cmd is not None:
+            cmd, self.held_cmd = self.held_cmd, None
+            return [cmd]
         return []
 
     def ready(self) -> bool:
@@ -461,7 +498,7 @@ class EcuNode:
         return self._diag_out(frames)
 
     def _diag_out(self, frames: list[Frame]) -> list[Frame]:
-        self.tx.sent["DIAG_RESPONSE"] += len(frames)
+        self.diag_sent += len(frames)
         if self.state.diag.reset_requested:
             self.state.reset()
             self.resets += 1
@@ -473,62 +510,34 @@ class EcuNode:
 
     def tick(self) -> list[Frame]:
         self.record()
-        k = self.k
         s = self.pending.popleft()
         if s is MISSING:
-            self.seq = (self.seq + 1) & 0x3
+            e = self.E[0]
+            e["seq"] = (e["seq"] + 1) & 0x3
+            self._note_py(safety.FAULT_TIMEOUT, "PLANT_SENSORS:missing")
             s = None
-            self.link_faults |= safety.FAULT_TIMEOUT
-            self.frame_faults["PLANT_SENSORS:missing"] += 1
-        speed = self.speed_raw
-        if not safety.check_timeout(self.spec_speed, self.rx[ID["VEHICLE_SPEED"]], k):
-            self.link_faults |= safety.FAULT_TIMEOUT
-            speed = None
-        elif not self.rx[ID["VEHICLE_SPEED"]].valid:
-            speed = None
-        supply, self.supply_new = self.supply_new, None
-        if not safety.check_timeout(self.spec_supply, self.rx[ID["PLANT_SUPPLY"]], k):
-            self.link_faults |= safety.FAULT_TIMEOUT
-        counts = s if s is not None else (None,) * 4
-        kind, rmode, rid = self.req
-        link_faults = self.link_faults
-        inp = ecu.Inputs(k, *counts, speed, kind, rmode, rid, link_faults, supply)
-        out = self.state.step(inp)
-        self.k += 1
-        self.link_faults = 0
-        # the command first (realtime sends it first; the plant waits for it), then the rest
-        cmd = self.tx.frame_packed("ACTUATOR_CMD", self.pack_cmd,
-                                   (out.duty_q15, out.regen, out.enable, self.seq))
-        if self.cmd_sec is not None:
-            cmd = (cmd[0], self.cmd_sec.protect(cmd[1]))
+        st = self.state
+        c = s or _NO_COUNTS
+        n, awaiting = ken.tick(self.E, self.M, self.F, self.fault_bits, self.RX, self.SEC,
+                               self.crypto, st.P, st.T, st.S, st.I, st.O, s is not None,
+                               c[0], c[1], c[2], c[3], self._out_mi, self._out)
+        if st.log is not None:
+            st.log.append(st.fx_tick())
+        frame_of, out = self._frame_of, self._out
         frames = []
-        grade = UNKNOWN_GRADE_ON_BUS if out.grade == fp.GRADE_UNKNOWN else out.grade
-        self.status_faults |= out.faults
-        if k % self.p_status == 0:
-            frames.append(self.tx.frame("ECU_STATUS", {
-                "ACTIVE_MODE": out.active_mode, "ESTIMATED_GRADE": grade, "REASON": out.reason,
-                **fault_signals(self.status_faults), "BA_RMS": out.ba_rms_mmps2,
-                "DTD_RMS": (out.dtd_rms_um + 5) // 10}))
-            self.status_faults = 0
-            frames.append(self.tx.frame("ECU_ESTIMATES", {
-                "ROAD_EST": _div_half_away(out.road_est_um, 10), "DTD_EST": out.dtd_est_um,
-                "GQ_LOG": out.gq_est_log_c, "FORCE_CMD": out.force_cmd_n}))
-        rec = (out.recommended_mode, out.active_mode, out.reason, out.override)
-        if k % self.p_rec == 0 or rec != self.last_rec:
-            self.last_rec = rec
-            self.awaiting += 1
-            frames.append(self.tx.frame("MODE_RECOMMEND", {
-                "RECOMMENDED_MODE": out.recommended_mode, "ESTIMATED_GRADE": grade,
-                "ACTIVE_MODE": out.active_mode, "REASON": out.reason,
-                "OVERRIDE": int(out.override)}))
-        if self.lockstep and self.awaiting:
-            self.held_cmd = cmd
-        elif self.lockstep:
-            frames.append(cmd)
-        else:                 # realtime: the command is what the plant waits for; send it first
-            self.awaiting = 0
+        for i, mi in enumerate(self._out_mi[:n].tolist()):
+            fid, dlc = frame_of[mi]
+            frames.append((fid, out[i, :dlc].tobytes()))
+        cmd = frames.pop(0)
+        # the command first in realtime (the plant waits for it); held in lockstep while a
+        # MODE_RECOMMEND awaits its answer, else last
+        if not self.lockstep:
             frames.insert(0, cmd)
-        self.unrecorded = (k, counts, speed, supply, kind, rmode, rid, link_faults, out)
+        elif awaiting:
+            self.held_cmd = cmd
+        else:
+            frames.append(cmd)
+        self.unrecorded = True
         if self.uds is not None and self.uds.busy:   # (a transfer's ISO-TP timers)
             frames += self._diag_out(self.uds.poll())
         return frames
@@ -537,29 +546,27 @@ class EcuNode:
         """The tick's bookkeeping (trace hash, per-tick record), kept off the path from the
         sensor frame to the command: callers run it after sending the tick's frames; the next
         tick and ``summary``/``trace`` run it when they did not."""
-        if self.unrecorded is None:
+        if not self.unrecorded:
             return
-        k, counts, speed, supply, kind, rmode, rid, link_faults, out = self.unrecorded
-        self.unrecorded = None
-        if None in counts:
-            counts = tuple(-1 if c is None else c for c in counts)
-        row = _HASHED.pack(    # (in HASHED's order)
-            k, *counts, -1 if speed is None else speed, -1 if supply is None else supply,
-            kind, rmode, rid, link_faults,
-            out.duty_q15, out.regen, out.enable, out.recommended_mode, out.active_mode,
-            out.grade, out.reason, out.faults, out.events, out.override, 0, out.force_cmd_n,
-            out.road_est_um, out.dtd_est_um, out.gq_est_log_c, out.ba_rms_mmps2,
-            out.dtd_rms_um, 0)
-        self.sha.update(row)
+        self.unrecorded = False
+        st = self.state
+        ken.record(self.E, st.I, st.O, self._hrow, 0, self._trow)
+        self.sha.update(self._hrow)
         if self.hashed is not None:
-            self.hashed += row
-        self.rows.extend((out.road_est_um, out.dtd_est_um, out.force_cmd_n, out.grade,
-                          out.active_mode, out.recommended_mode, out.faults, out.enable,
-                          out.reason))
+            self.hashed += self._hrow.tobytes()
+        self.rows.frombytes(self._trow.tobytes())
+
+    def frames_sent(self) -> dict[str, int]:
+        out = {name: int(self.E[0]["sent"][kb.MESSAGES.index(name)])
+               for name in ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND")}
+        out = {name: n for name, n in out.items() if n}
+        if self.diag_sent:
+            out["DIAG_RESPONSE"] = self.diag_sent
+        return out
 
     def summary(self) -> dict:
         self.record()
-        return {"node": "ecu", "ticks": self.k, "frames_sent": dict(self.tx.sent),
+        return {"node": "ecu", "ticks": self.k, "frames_sent": self.frames_sent(),
                 "trace_sha256": self.sha.hexdigest(),
                 "akf_r_guard_hits": self.state.guard_hits,
                 "frame_faults": dict(self.frame_faults),
@@ -578,9 +585,13 @@ class EcuNode:
                 "reason": c[8].astype(np.int8)}
 
 
-def _div_half_away(a: int, b: int) -> int:
-    q = (abs(a) + b // 2) // b
-    return q if a >= 0 else -q
+# the ECU's receive table: message -> (its receiver's row, its message index), hil.kernels.bus
+_RX_ROWS = {"VEHICLE_SPEED": (kb.R_SPEED, kb.M_SPEED),
+            "PLANT_SUPPLY": (kb.R_SUPPLY, kb.M_SUPPLY),
+            "PLANT_SENSORS": (kb.R_SENSORS, kb.M_SENSORS),
+            "DRIVER_REQUEST": (kb.R_REQ, kb.M_REQ)}
+_NO_COUNTS = (-1, -1, -1, -1)
+_SIM_TICK, _DIAG_REQUEST = ID["SIM_TICK"], ID["DIAG_REQUEST"]
 
 
 REQ_KINDS = {"none": fp.REQ_NONE, "accept": fp.REQ_ACCEPT, "refuse": fp.REQ_REFUSE,
@@ -797,6 +808,8 @@ def warm_up(node, ticks: int = 30) -> None:
             shared[id(rec)] = rec
     if getattr(node, "inject", None) is not None:
         shared[id(node.inject)] = node.inject
+    if getattr(node, "mac", None) is not None:     # (a CMAC context does not copy; its
+        shared[id(node.mac)] = node.mac            # callers' freshness is in their tables)
     if hasattr(node, "sha"):
         shared[id(node.sha)] = hashlib.sha256()   # (a hash object does not copy)
     w = copy.deepcopy(node, shared)

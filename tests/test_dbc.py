@@ -239,7 +239,9 @@ def test_the_firmwares_receive_and_transmit_tables_match_the_dbc():
     node = EcuNode(ecu_params(default_vehicle(), "auto"), codec)
     assert node.listen - {ID["SIM_TICK"], ID["DIAG_REQUEST"]} == {
         ID[c.message] for c in safety.RX_CHECKS}
-    assert node.spec_speed.timeout_ticks == 30 and node.spec_speed.min_interval_ticks == 5
+    speed = node.rx[ID["VEHICLE_SPEED"]]          # (its row of the compiled receive table)
+    assert speed.timeout == 30 and speed.min_interval == 5
+    assert set(node.rx) == {ID[c.message] for c in safety.RX_CHECKS}
 
 
 ENUMERATED = {"ACTUATOR_CMD": ("REGEN", "ENABLE"),

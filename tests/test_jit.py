@@ -131,14 +131,14 @@ from numba.core.registry import CPUDispatcher
 from firmware.kernels import akf, bppid, grade
 from firmware.tick import ecu as tick
 from hil import nodes, sil
-from hil.kernels import plant, sensors
+from hil.kernels import ecunode, plant, sensors
 from hil.codec import Codec
 from hil.config import default_vehicle
 from hil.road import load_route
 
 def kernels():
     out = {}
-    for mod in (akf, bppid, grade, tick, plant, sensors):
+    for mod in (akf, bppid, grade, tick, ecunode, plant, sensors):
         for name, obj in vars(mod).items():
             if isinstance(obj, CPUDispatcher):
                 out[mod.__name__ + "." + name] = len(obj.signatures)
@@ -160,7 +160,7 @@ print(json.dumps({"before": before, "after": kernels()}))
 def test_warm_up_leaves_nothing_to_compile_for_the_run():
     """After hil.nodes.warm_up, 3 s of a real run (speed, every controller path of auto mode
     on an A road, the twin) needs no kernel specialization the warm-up did not load (the
-    ECU's: its compiled tick, every stage inside): a new
+    ECU node's: its receive table and its tick, the ECU's every stage inside): a new
     one costs milliseconds inside a realtime tick (a non-contiguous calibration array once
     made the first real ECU tick 7.8 ms)."""
     res = subprocess.run([sys.executable, "-c", WARM_CHECK], capture_output=True, text=True,
@@ -168,7 +168,8 @@ def test_warm_up_leaves_nothing_to_compile_for_the_run():
     assert res.returncode == 0, res.stderr[-2000:]
     got = json.loads(res.stdout)
     assert got["before"] == got["after"]
-    for kernel in ("firmware.tick.ecu.tick_values", "hil.kernels.plant.advance",
+    for kernel in ("hil.kernels.ecunode.receive", "hil.kernels.ecunode.tick",
+                   "hil.kernels.ecunode.record", "hil.kernels.plant.advance",
                    "hil.kernels.plant.sensed", "hil.kernels.plant.observe_into",
                    "hil.kernels.sensors.quantise5"):
         assert got["before"][kernel] >= 1, kernel

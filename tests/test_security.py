@@ -225,7 +225,7 @@ def _attack_run(tmp_path, *extra):
 
     sup = subprocess.Popen([sys.executable, "-m", "hil", "run", "--out", str(tmp_path),
                             "--route", str(ROOT / "tests" / "golden" / "routes" / "b20.toml"),
-                            "--mode", "comfort", "--duration", "10", "--json", *extra],
+                            "--mode", "comfort", "--duration", "30", "--json", *extra],
                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     url = sup.stderr.readline().split()[2]            # "bus: remote ws://127.0.0.1:PORT/ ..."
     deadline = time.monotonic() + 120

@@ -94,12 +94,11 @@ def test_nodes_state_after_the_loop():
         states.append(json.dumps({
             "bus": bus, "plant": plant.summary(), "ecu": ecu_node.summary(),
             "app": app.summary(), "cmd": [plant.cmd, plant.cmd_tick, plant.cmd_seq],
-            "x": plant.active.x.tolist(), "req": ecu_node.req, "seq": ecu_node.seq,
-            "last_rec": ecu_node.last_rec, "fv": [ecu_node.cmd_sec.fv, app.req_sec.fv,
-                                                  plant.cmd_auth.latest,
-                                                  ecu_node.req_auth.latest],
-            "counters": [plant.tx.counters, ecu_node.tx.counters, app.tx.counters],
-            "rx": [vars(r) for r in ecu_node.rx.values()] + [vars(plant.cmd_rx)],
+            "x": plant.active.x.tolist(), "ecu": ecu_node.E.tobytes().hex(),
+            "ecu_rx": ecu_node.RX.tobytes().hex(), "ecu_sec": ecu_node.SEC.tobytes().hex(),
+            "ff": [ecu_node.ff.tolist(), ecu_node.ff_first.tolist()],
+            "fv": [app.req_sec.fv, plant.cmd_auth.latest, plant.cmd_auth.rejected],
+            "counters": [plant.tx.counters, app.tx.counters], "rx": vars(plant.cmd_rx),
             "ecu_k": ecu_node.k, "app": [app.t, app.kind, app.req_id, app._shown]},
             default=str))
     assert states[0] == states[1]
@@ -114,9 +113,9 @@ def test_runs_the_loop_does_not_cover_are_named():
     assert "script" in fastsil.eligible(plant, ecu_node, app)
     with pytest.raises(ValueError, match="does not cover"):
         fastsil.run(plant, ecu_node, app)
-    unsecured = EcuNode(p, codec)
-    assert "SecOC" in fastsil.eligible(plant, unsecured, sil.app_node(codec, "auto", p.dt_s,
-                                                                      key=KEY))
+    auto = sil.app_node(codec, "auto", p.dt_s, key=KEY)
+    assert "SecOC" in fastsil.eligible(plant, EcuNode(p, codec), auto)
+    assert "keys" in fastsil.eligible(plant, EcuNode(p, codec, key=bytes(16)), auto)
 
 
 def test_the_loop_allocates_nothing_per_tick():

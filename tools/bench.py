@@ -62,28 +62,32 @@ def cpu_model() -> str:
 
 def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     """Wall time of every ECU step (``firmware.tick.Ecu.step``: the compiled tick and its
-    call from Python, as the nodes of ``hil run`` make it) inside a SIL run of those nodes
-    (comfort-heavy auto route)."""
+    call from Python) over the inputs a SIL run (comfort-heavy auto route) gave its ECU,
+    replayed into a fresh ECU from the run's hashed rows."""
+    from calib.fx_tables import build_tables
+    from firmware.ecu import Inputs
     from firmware.tick import Ecu
     from hil import sil
     from hil.config import default_vehicle
+    from hil.nodes import _HASHED
     from hil.road import load_route
 
+    rows = bytearray()
+    cfg = default_vehicle()
+    sil.run(cfg, load_route("full_road_section"), "auto", 1, duration_s=duration_s,
+            fixed_point=fixed_point, hashed=rows)
+    p = sil.ecu_params(cfg, "auto")
+    ecu = Ecu(p, build_tables(p) if fixed_point else None)
+    none = lambda v: None if v < 0 else v          # noqa: E731
     times: list[int] = []
-    real = Ecu.step
-
-    def timed(self, inp):
+    for r in _HASHED.iter_unpack(bytes(rows)):
+        inp = Inputs(r[0], none(r[1]), none(r[2]), none(r[3]), none(r[4]), none(r[5]),
+                     r[7], r[8], r[9], r[10], none(r[6]))
         t0 = time.perf_counter_ns()
-        out = real(self, inp)
+        out = ecu.step(inp)
         times.append(time.perf_counter_ns() - t0)
-        return out
-
-    Ecu.step = timed
-    try:
-        sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
-                duration_s=duration_s, fixed_point=fixed_point, compiled=False)
-    finally:
-        Ecu.step = real
+        if out.duty_q15 != r[11] or out.faults != r[18]:     # (the same ECU, replayed)
+            raise RuntimeError(f"tick {r[0]}: the replayed ECU differs from the run's")
     return np.array(times[100:], dtype=float) / 1000.0
 
 

@@ -1,20 +1,21 @@
 """The SIL's lockstep loop compiled (issue 37): the plant, ECU and driver-app nodes of
 ``hil.nodes`` and the bus between them as one numba function that runs tick after tick until
-the next event for Python (the end of a chunk: its buffers drained, the sensors' noise drawn,
-progress shown), the same frames in the same order as ``hil.nodes.run_in_process`` and the
-same bytes (``tests/test_silloop.py`` holds the two together; ``hil.nodes`` stays the
-reference and the path of every run this loop does not cover: ``hil.fastsil.eligible``).
+the next event for Python (``hil.fastsil``: a block of sensor noise, progress), the same
+frames in the same order as ``hil.nodes.run_in_process`` and the same bytes
+(``tests/test_silloop.py`` holds the two together; ``run_in_process`` stays the path of the
+runs this loop does not cover: ``hil.fastsil.eligible``).
 
 Per tick k, as ``hil.nodes``' docstring tells the protocol: the plant samples its sensors and
 sends VEHICLE_SPEED, PLANT_SUPPLY, SIM_TRUTH (every 10 ms), ENERGY_STATUS (100 ms) and
-PLANT_SENSORS; the ECU ticks (``firmware.tick.ecu.tick``) and sends ECU_STATUS and
-ECU_ESTIMATES (10 ms) and MODE_RECOMMEND (100 ms and on change), the app answers that with a
-DRIVER_REQUEST, then the ECU's (signed) ACTUATOR_CMD goes to the plant, which steps.
+PLANT_SENSORS; the ECU ticks and sends ECU_STATUS and ECU_ESTIMATES (10 ms) and
+MODE_RECOMMEND (100 ms and on change), the app answers that with a DRIVER_REQUEST, then the
+ECU's signed ACTUATOR_CMD goes to the plant, which steps. The ECU's side is the ECU node's
+own compiled code (``hil.kernels.ecunode``: ``receive`` per frame, ``tick``, ``record``), the
+same calls ``hil.nodes.EcuNode`` makes in ``hil run``.
 
-State: one record ``Z`` (``SIL``'s fields: each node's scalars, its transmit COUNTERs, the
-frames sent and seen per message); the frame tables of ``hil.kernels.frames`` (messages in
-``MESSAGES``' order, signals in ``USES``' order), the receivers (``R_*``) and the SecOC rows
-(``S_*``); the plant's arrays (``hil.plant.QuarterCarPlant``'s); the ECU's records
+State: the record ``Z`` (``SIL``: the plant's and the app's scalars, their transmit COUNTERs,
+the frames sent and seen per message) and the ECU node's record; the tables of
+``hil.kernels.bus``; the plant's arrays (``hil.plant.QuarterCarPlant``'s); the ECU's records
 (``firmware.tick``); the per-tick outputs (the plant's observations, the ECU's trace rows,
 the hashed rows, the frame log, the driver's requests).
 """
@@ -26,48 +27,21 @@ import numpy as np
 from firmware import params as fp
 from firmware.kernels import njit
 from firmware.modes import REASON_NONE
-from firmware.safety import FAULT_AUTH
-from firmware.tick import ecu
+from hil.kernels import ecunode as ken
 from hil.kernels import frames as kf
 from hil.kernels import plant as kp
 from hil.kernels import secoc as ks
+from hil.kernels.bus import (M_CMD, M_ENERGY, M_EST, M_REC, M_REQ, M_SENSORS, M_SPEED,
+                             M_STATUS, M_SUPPLY, M_TRUTH, NMSG, S_CMD_RX, S_REQ_TX, U_DRAWN,
+                             U_DUTY, U_ENABLE, U_ID, U_KIND, U_MODE, U_REC, U_REC_ACTIVE,
+                             U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ, U_SPEED,
+                             U_STORED, U_SUPPLY, U_TRUE_DTD, U_TRUE_GRADE, U_TRUE_ROAD,
+                             U_TRUE_SWS)
 from hil.kernels.sensors import quantise_into
 
-MESSAGES = ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS", "PLANT_SENSORS",
-            "ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND", "DRIVER_REQUEST")
-(M_SPEED, M_SUPPLY, M_TRUTH, M_ENERGY, M_SENSORS, M_CMD, M_STATUS, M_EST, M_REC,
- M_REQ) = range(len(MESSAGES))
-USES = (("VEHICLE_SPEED", "SPEED"), ("PLANT_SUPPLY", "SUPPLY_VOLTAGE_RAW"),
-        ("SIM_TRUTH", "TRUE_ROAD"), ("SIM_TRUTH", "TRUE_DTD"), ("SIM_TRUTH", "TRUE_SWS"),
-        ("SIM_TRUTH", "TRUE_GRADE"), ("SIM_TRUTH", "SEGMENT"),
-        ("ENERGY_STATUS", "STORED_ENERGY"), ("ENERGY_STATUS", "SUPPLY_ENERGY"),
-        ("PLANT_SENSORS", "BODY_ACCEL_RAW"), ("PLANT_SENSORS", "WHEEL_ACCEL_RAW"),
-        ("PLANT_SENSORS", "SUSP_DEFL_RAW"), ("PLANT_SENSORS", "MOTOR_CURRENT_RAW"),
-        ("ACTUATOR_CMD", "DUTY"), ("ACTUATOR_CMD", "REGEN"), ("ACTUATOR_CMD", "ENABLE"),
-        ("ACTUATOR_CMD", "SENSOR_SEQ"),
-        ("ECU_STATUS", "ACTIVE_MODE"), ("ECU_STATUS", "ESTIMATED_GRADE"),
-        ("ECU_STATUS", "REASON"), ("ECU_STATUS", "BA_RMS"), ("ECU_STATUS", "DTD_RMS"),
-        ("ECU_ESTIMATES", "ROAD_EST"), ("ECU_ESTIMATES", "DTD_EST"),
-        ("ECU_ESTIMATES", "GQ_LOG"), ("ECU_ESTIMATES", "FORCE_CMD"),
-        ("MODE_RECOMMEND", "RECOMMENDED_MODE"), ("MODE_RECOMMEND", "ESTIMATED_GRADE"),
-        ("MODE_RECOMMEND", "ACTIVE_MODE"), ("MODE_RECOMMEND", "REASON"),
-        ("MODE_RECOMMEND", "OVERRIDE"),
-        ("DRIVER_REQUEST", "REQ_KIND"), ("DRIVER_REQUEST", "REQ_MODE"),
-        ("DRIVER_REQUEST", "REQ_ID"))
-(U_SPEED, U_SUPPLY, U_TRUE_ROAD, U_TRUE_DTD, U_TRUE_SWS, U_TRUE_GRADE, U_SEGMENT, U_STORED,
- U_DRAWN, U_SENS, _, _, _, U_DUTY, U_REGEN, U_ENABLE, U_SEQ, U_ST_ACTIVE, U_ST_GRADE,
- U_ST_REASON, U_ST_BA, U_ST_DTD, U_ROAD_EST, U_DTD_EST, U_GQ, U_FORCE, U_REC, U_REC_GRADE,
- U_REC_ACTIVE, U_REC_REASON, U_REC_OVERRIDE, U_KIND, U_MODE, U_ID) = range(len(USES))
-# then ECU_STATUS's fault signals, one per bit of the fault word (``FAULT_BITS`` gives the bits)
-U_FAULTS = len(USES)
-
-R_SPEED, R_SUPPLY, R_SENSORS, R_REQ, R_CMD = range(5)    # the ECU's four receivers, the plant's
-S_CMD_TX, S_CMD_RX, S_REQ_TX, S_REQ_RX = range(4)        # SecOC: ECU -> plant, app -> ECU
 POLICIES = ("auto", "fixed", "refuse")                   # the driver policies compiled here
-NMSG = len(MESSAGES)
-ROW_BYTES = 93           # a hashed row (hil.nodes.HASHED, little-endian, no padding)
+ROW_BYTES = ken.ROW_BYTES
 FRAMES_PER_TICK = 12     # at most, for the frame log's size
-UNKNOWN_GRADE_ON_BUS = 7
 OK, LOCKSTEP_BROKEN = 0, 1
 N_OBS = len(kp.OBS)      # the plant's observations, then the duty applied, fallback, rejected
 
@@ -83,17 +57,12 @@ SIL = np.dtype([
     ("limited_steps", "i8"), ("noise_k", "i8"), ("noise_gain", "f8"), ("gain", "f8", (5,)),
     ("noise_base", "i8"), ("supply_next", "i8"), ("sup_std", "f8"), ("sup_min", "f8"),
     ("sup_lsb", "f8"), ("sup_full", "i8"),
-    # the ECU node
-    ("ek", "i8"), ("speed_raw", "i8"), ("supply_new", "i8"), ("req_kind", "i8"),
-    ("req_mode", "i8"), ("req_id", "i8"), ("awaiting", "i8"), ("held", "i8"),
-    ("link_faults", "i8"), ("seq", "i8"), ("status_faults", "i8"), ("last_rec", "i8", (4,)),
-    ("p_status", "i8"), ("p_rec", "i8"), ("pending", "i8"), ("counts", "i8", (4,)),
-    ("ff_stamp", "i8"),
     # the driver app
     ("policy", "i8"), ("app_mode", "i8"), ("reaction", "i8"), ("n_status", "i8"),
     ("t", "i8"), ("kind", "i8"), ("rmode", "i8"), ("rid", "i8"), ("shown", "i8"),
     ("shown_since", "i8"), ("answered", "i8"), ("chosen", "i8"), ("app_p_status", "i8"),
-    # the bus: COUNTERs, frames sent and seen per message; the buffers' fill
+    # the bus: the plant's and app's COUNTERs and frames sent, frames seen, per message;
+    # the buffers' fill
     ("ctr", "i8", (NMSG,)), ("sent", "i8", (NMSG,)), ("seen", "i8", (NMSG,)),
     ("log_on", "i8"), ("nlog", "i8"), ("hpos", "i8"), ("nreq", "i8")])
 
@@ -109,64 +78,6 @@ def _log(Z, mi, m, buf, log_id, log_dlc, log_data) -> None:
         for i in range(m.dlc):
             log_data[j, i] = buf[i]
         Z.nlog = j + 1
-
-
-@njit
-def _note(Z, ff, ff_first, mi, faults) -> None:
-    """``EcuNode._note``: the link faults of the tick, counted per message and fault bit (the
-    first time each is seen stamped, for the report's order)."""
-    Z.link_faults |= faults
-    for b in range(32):
-        if faults & (1 << b):
-            if ff[mi, b] == 0:
-                ff_first[mi, b] = Z.ff_stamp
-                Z.ff_stamp += 1
-            ff[mi, b] += 1
-
-
-@njit
-def _wr(buf, pos, v, nbytes):
-    for i in range(nbytes):
-        buf[pos + i] = (v >> (8 * i)) & 0xFF
-    return pos + nbytes
-
-
-@njit
-def _record(Z, o, inp, speed, supply, link, rows, hashbuf) -> None:
-    """``EcuNode.record``: the hashed row (``hil.nodes.HASHED``) and the trace row."""
-    k = inp.tick
-    p = _wr(hashbuf, Z.hpos, k, 8)
-    for c in range(4):
-        p = _wr(hashbuf, p, inp.counts[c], 4)
-    p = _wr(hashbuf, p, speed, 4)
-    p = _wr(hashbuf, p, supply, 4)
-    p = _wr(hashbuf, p, inp.req_kind, 4)
-    p = _wr(hashbuf, p, inp.req_mode, 4)
-    p = _wr(hashbuf, p, inp.req_counter, 4)
-    p = _wr(hashbuf, p, link, 4)
-    p = _wr(hashbuf, p, o.duty_q15, 4)
-    p = _wr(hashbuf, p, o.regen, 1)
-    p = _wr(hashbuf, p, o.enable, 1)
-    p = _wr(hashbuf, p, o.recommended_mode, 1)
-    p = _wr(hashbuf, p, o.active_mode, 1)
-    p = _wr(hashbuf, p, o.grade, 1)
-    p = _wr(hashbuf, p, o.reason, 1)
-    p = _wr(hashbuf, p, o.faults, 4)
-    p = _wr(hashbuf, p, o.events, 1)
-    p = _wr(hashbuf, p, o.override, 1)
-    p = _wr(hashbuf, p, 0, 1)
-    p = _wr(hashbuf, p, o.force_cmd_n, 4)
-    p = _wr(hashbuf, p, o.road_est_um, 4)
-    p = _wr(hashbuf, p, o.dtd_est_um, 4)
-    p = _wr(hashbuf, p, o.gq_est_log_c, 4)
-    p = _wr(hashbuf, p, o.ba_rms_mmps2, 4)
-    p = _wr(hashbuf, p, o.dtd_rms_um, 4)
-    p = _wr(hashbuf, p, 0, 4)
-    Z.hpos = p
-    r = rows[k]
-    r[0], r[1], r[2], r[3], r[4] = (o.road_est_um, o.dtd_est_um, o.force_cmd_n, o.grade,
-                                    o.active_mode)
-    r[5], r[6], r[7], r[8] = o.recommended_mode, o.faults, o.enable, o.reason
 
 
 @njit
@@ -201,7 +112,7 @@ def _app_decide(Z, rec, active, reason, reqlog) -> None:
 
 
 @njit
-def _plant_cmd(Z, M, F, RX, SEC, buf, crypto) -> None:
+def _plant_cmd(Z, M, F, PRX, SEC, buf, crypto) -> None:
     """``PlantNode._receive_cmd`` (no fault campaign): SecOC first, then the frame checks; a
     valid command is applied, and ends the tick if it answers this tick's sensor frame."""
     m = M[M_CMD]
@@ -209,7 +120,7 @@ def _plant_cmd(Z, M, F, RX, SEC, buf, crypto) -> None:
     if ks.forged(m, SEC[S_CMD_RX], buf, m.dlc, ctx, msg, tag16, length):
         Z.auth_failures += 1
         return
-    if not kf.receive(F, m, RX[R_CMD], buf, m.dlc, Z.k):
+    if not kf.receive(F, m, PRX[0], buf, m.dlc, Z.k):
         Z.bad_cmd += 1
         return
     w = kf.load(buf, m.dlc)
@@ -222,29 +133,6 @@ def _plant_cmd(Z, M, F, RX, SEC, buf, crypto) -> None:
         Z.cmd_fresh = 1
     else:
         Z.stale_cmd += 1
-
-
-@njit
-def _ecu_request(Z, M, F, RX, SEC, buf, crypto, ff, ff_first):
-    """``EcuNode.on_frame`` for DRIVER_REQUEST: True when it releases the held command."""
-    m = M[M_REQ]
-    ctx, msg, tag16, length = crypto
-    if ks.forged(m, SEC[S_REQ_RX], buf, m.dlc, ctx, msg, tag16, length):
-        _note(Z, ff, ff_first, M_REQ, FAULT_AUTH)
-        return False
-    ok = kf.receive(F, m, RX[R_REQ], buf, m.dlc, Z.ek)
-    Z.awaiting = max(0, Z.awaiting - 1)
-    if ok:
-        w = kf.load(buf, m.dlc)
-        Z.req_kind = kf.get(w, F[U_KIND])
-        Z.req_mode = kf.get(w, F[U_MODE])
-        Z.req_id = kf.get(w, F[U_ID])
-    else:
-        _note(Z, ff, ff_first, M_REQ, RX[R_REQ].faults)
-    if Z.held and Z.awaiting == 0:
-        Z.held = 0
-        return True
-    return False
 
 
 @njit
@@ -262,16 +150,29 @@ def _app_recommend(Z, M, F, buf, reqlog, scratch_rx) -> None:
 
 
 @njit
-def run(Za, M, F, FAULT_BITS, RX, SEC, crypto, phis, flows, x, pp, v, acc, zf, speed_mps,
-        true_grade, segment, noise, sup_noise, std, rmin, lsb, full, P, T, S, I, O,
+def _send(Z, mi) -> None:
+    """A frame of the plant's or the app's sent: its COUNTER on (``Tx`` keeps one for every
+    message), counted."""
+    Z.ctr[mi] = (Z.ctr[mi] + 1) & 0xF
+    Z.sent[mi] += 1
+
+
+@njit
+def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, pp, v, acc, zf,
+        speed_mps, true_grade, segment, noise, sup_noise, std, rmin, lsb, full, P, T, S, I, O,
         obs, rows, hashbuf, ff, ff_first, reqlog, log_id, log_dlc, log_data, k_end):
-    """Run the lockstep ticks from ``Z.k`` up to ``k_end`` (or the route's end). Returns
-    ``OK`` or ``LOCKSTEP_BROKEN`` (a tick whose command did not come: ``Z.k`` is that tick)."""
+    """Run the lockstep ticks from ``Z.k`` up to ``k_end`` (or the route's end). ``Ea``, the
+    ECU node's state with its receivers ``ERX`` and SecOC rows ``ESEC`` and its frame faults
+    ``ff``/``ff_first`` (``hil.kernels.ecunode``); ``PRX``, the plant's receiver of
+    ACTUATOR_CMD; ``SEC``, the plant's and the app's SecOC rows. Returns ``OK`` or
+    ``LOCKSTEP_BROKEN`` (a tick whose command did not come: ``Z.k`` is that tick)."""
     Z = Za[0]
+    E = Ea[0]
     ctx, msg, tag16, length = crypto
     buf = np.zeros(8, np.uint8)        # the frame on the bus (processed before the next)
-    held = np.zeros(8, np.uint8)       # the ECU's command, held for the driver's answer
-    scratch_rx = RX[R_CMD:R_CMD + 1].copy()     # (the app's one-off decodes)
+    out_mi = np.zeros(4, np.int64)     # the ECU's frames of a tick (the command first)
+    out = np.zeros((4, 8), np.uint8)
+    scratch_rx = PRX[0:1].copy()       # (the app's one-off decodes)
     sensed = np.zeros(5)
     zeta = np.zeros(kp.N_AUG)           # the plant step's scratch
     flow_q = np.zeros(flows.shape[2])
@@ -279,7 +180,7 @@ def run(Za, M, F, FAULT_BITS, RX, SEC, crypto, phis, flows, x, pp, v, acc, zf, s
     end = min(k_end, Z.n)
     while Z.k < end:
         k = Z.k
-        # ---- the plant's frames (PlantNode.emit)
+        # ---- the plant's frames (PlantNode.emit), each received as it crosses the bus
         if k >= Z.noise_k:
             for c in range(5):
                 Z.gain[c] = Z.noise_gain
@@ -289,13 +190,9 @@ def run(Za, M, F, FAULT_BITS, RX, SEC, crypto, phis, flows, x, pp, v, acc, zf, s
         if k % Z.p_speed == 0:
             m = M[M_SPEED]
             kf.seal(m, buf, kf.put(0, F[U_SPEED], counts[4]), Z.ctr[M_SPEED], True)
-            Z.ctr[M_SPEED] = (Z.ctr[M_SPEED] + 1) & 0xF
-            Z.sent[M_SPEED] += 1
+            _send(Z, M_SPEED)
             _log(Z, M_SPEED, m, buf, log_id, log_dlc, log_data)
-            if kf.receive(F, m, RX[R_SPEED], buf, m.dlc, Z.ek):
-                Z.speed_raw = kf.get(kf.load(buf, m.dlc), F[U_SPEED])
-            else:
-                _note(Z, ff, ff_first, M_SPEED, RX[R_SPEED].faults)
+            ken.receive(Ea, M, F, ERX, ESEC, crypto, ff, ff_first, M_SPEED, buf, m.dlc)
         if k % Z.p_supply == 0:
             m = M[M_SUPPLY]
             volts = v[0] + Z.sup_std * sup_noise[Z.supply_next]
@@ -310,24 +207,20 @@ def run(Za, M, F, FAULT_BITS, RX, SEC, crypto, phis, flows, x, pp, v, acc, zf, s
             else:
                 c = kf.round_half_away(raw)
             kf.seal(m, buf, kf.put(0, F[U_SUPPLY], c), Z.ctr[M_SUPPLY], True)
-            Z.ctr[M_SUPPLY] = (Z.ctr[M_SUPPLY] + 1) & 0xF
-            Z.sent[M_SUPPLY] += 1
+            _send(Z, M_SUPPLY)
             _log(Z, M_SUPPLY, m, buf, log_id, log_dlc, log_data)
-            if kf.receive(F, m, RX[R_SUPPLY], buf, m.dlc, Z.ek):
-                Z.supply_new = kf.get(kf.load(buf, m.dlc), F[U_SUPPLY])
-            else:
-                _note(Z, ff, ff_first, M_SUPPLY, RX[R_SUPPLY].faults)
+            ken.receive(Ea, M, F, ERX, ESEC, crypto, ff, ff_first, M_SUPPLY, buf, m.dlc)
         if k % Z.p_truth == 0:          # (nobody receives it: built for the log)
             m = M[M_TRUTH]
             if Z.log_on:
                 w = kf.put(0, F[U_TRUE_ROAD], kf.to_raw(F[U_TRUE_ROAD], zf[k]))
                 w = kf.put(w, F[U_TRUE_DTD], kf.to_raw(F[U_TRUE_DTD], x[3] - Z.zf))
                 w = kf.put(w, F[U_TRUE_SWS], kf.to_raw(F[U_TRUE_SWS], x[2] - x[3]))
-                w = kf.put(w, F[U_TRUE_GRADE], kf.to_raw(F[U_TRUE_GRADE], float(true_grade[k])))
+                w = kf.put(w, F[U_TRUE_GRADE], kf.to_raw(F[U_TRUE_GRADE],
+                                                         float(true_grade[k])))
                 w = kf.put(w, F[U_SEGMENT], kf.to_raw(F[U_SEGMENT], float(segment[k])))
                 kf.seal(m, buf, w, Z.ctr[M_TRUTH], True)
-            Z.ctr[M_TRUTH] = (Z.ctr[M_TRUTH] + 1) & 0xF          # (no COUNTER signal: Tx counts)
-            Z.sent[M_TRUTH] += 1
+            _send(Z, M_TRUTH)
             _log(Z, M_TRUTH, m, buf, log_id, log_dlc, log_data)
         if k % Z.p_energy == 0:         # (the app shows it: built for the log)
             m = M[M_ENERGY]
@@ -335,8 +228,7 @@ def run(Za, M, F, FAULT_BITS, RX, SEC, crypto, phis, flows, x, pp, v, acc, zf, s
                 w = kf.put(0, F[U_STORED], kf.to_raw(F[U_STORED], acc[kp.A_STORED]))
                 w = kf.put(w, F[U_DRAWN], kf.to_raw(F[U_DRAWN], acc[kp.A_SUPPLY]))
                 kf.seal(m, buf, w, Z.ctr[M_ENERGY], True)
-            Z.ctr[M_ENERGY] = (Z.ctr[M_ENERGY] + 1) & 0xF          # (no COUNTER signal: Tx counts)
-            Z.sent[M_ENERGY] += 1
+            _send(Z, M_ENERGY)
             _log(Z, M_ENERGY, m, buf, log_id, log_dlc, log_data)
         m = M[M_SENSORS]
         w = kf.put(0, F[U_SENS], counts[0])
@@ -344,119 +236,41 @@ def run(Za, M, F, FAULT_BITS, RX, SEC, crypto, phis, flows, x, pp, v, acc, zf, s
         w = kf.put(w, F[U_SENS + 2], counts[2])
         w = kf.put(w, F[U_SENS + 3], counts[3])
         kf.seal(m, buf, w, Z.ctr[M_SENSORS], True)
-        Z.ctr[M_SENSORS] = (Z.ctr[M_SENSORS] + 1) & 0xF
-        Z.sent[M_SENSORS] += 1
+        _send(Z, M_SENSORS)
         _log(Z, M_SENSORS, m, buf, log_id, log_dlc, log_data)
-        # ---- the ECU receives it (EcuNode.on_frame)
-        if kf.receive(F, m, RX[R_SENSORS], buf, m.dlc, Z.ek):
-            w = kf.load(buf, m.dlc)
-            for c in range(4):
-                Z.counts[c] = kf.get(w, F[U_SENS + c])
-            Z.seq = kf.counter_of(m, buf) & 0x3
-        else:
-            for c in range(4):
-                Z.counts[c] = -1
-            Z.seq = kf.counter_of(m, buf) & 0x3
-            _note(Z, ff, ff_first, M_SENSORS, RX[R_SENSORS].faults)
-        # ---- the ECU's tick (EcuNode.tick)
-        ek = Z.ek
-        speed = Z.speed_raw
-        if kf.timed_out(RX[R_SPEED], ek):
-            Z.link_faults |= kf.FAULT_TIMEOUT
-            speed = -1
-        elif RX[R_SPEED].valid == 0:
-            speed = -1
-        supply = Z.supply_new
-        Z.supply_new = -1
-        if kf.timed_out(RX[R_SUPPLY], ek):
-            Z.link_faults |= kf.FAULT_TIMEOUT
-        link = Z.link_faults
-        inp = I[0]
-        inp.tick = ek
-        for c in range(4):
-            inp.counts[c] = Z.counts[c]
-        inp.counts[4] = speed
-        inp.supply = supply
-        inp.req_kind, inp.req_mode, inp.req_counter = Z.req_kind, Z.req_mode, Z.req_id
-        inp.link_faults = link
-        ecu.tick(P, T, S, I, O)
-        o = O[0]
-        Z.ek = ek + 1
-        Z.link_faults = 0
-        m = M[M_CMD]
-        w = kf.put(0, F[U_DUTY], o.duty_q15)
-        w = kf.put(w, F[U_REGEN], o.regen)
-        w = kf.put(w, F[U_ENABLE], o.enable)
-        w = kf.put(w, F[U_SEQ], Z.seq)
-        kf.seal(m, held, w, Z.ctr[M_CMD], False)
-        Z.ctr[M_CMD] = (Z.ctr[M_CMD] + 1) & 0xF
-        Z.sent[M_CMD] += 1
-        ks.protect(m, SEC[S_CMD_TX], held, ctx, msg, tag16, length)
-        grade = UNKNOWN_GRADE_ON_BUS if o.grade == fp.GRADE_UNKNOWN else o.grade
-        Z.status_faults |= o.faults
-        if ek % Z.p_status == 0:
-            m = M[M_STATUS]
-            w = kf.put(0, F[U_ST_ACTIVE], o.active_mode)
-            w = kf.put(w, F[U_ST_GRADE], grade)
-            w = kf.put(w, F[U_ST_REASON], o.reason)
-            for j in range(FAULT_BITS.shape[0]):
-                w = kf.put(w, F[U_FAULTS + j], 1 if Z.status_faults & FAULT_BITS[j] else 0)
-            w = kf.put(w, F[U_ST_BA], o.ba_rms_mmps2)
-            w = kf.put(w, F[U_ST_DTD], (o.dtd_rms_um + 5) // 10)
-            kf.seal(m, buf, w, Z.ctr[M_STATUS], True)
-            Z.ctr[M_STATUS] = (Z.ctr[M_STATUS] + 1) & 0xF
-            Z.sent[M_STATUS] += 1
-            Z.status_faults = 0
-            _log(Z, M_STATUS, m, buf, log_id, log_dlc, log_data)
-            Z.n_status += 1                                 # (the app's clock)
-            Z.t = (Z.n_status - 1) * Z.app_p_status
-            m = M[M_EST]
-            if Z.log_on:
-                r = o.road_est_um
-                r10 = (abs(r) + 5) // 10                # (half away from zero)
-                w = kf.put(0, F[U_ROAD_EST], r10 if r >= 0 else -r10)
-                w = kf.put(w, F[U_DTD_EST], o.dtd_est_um)
-                w = kf.put(w, F[U_GQ], o.gq_est_log_c)
-                w = kf.put(w, F[U_FORCE], o.force_cmd_n)
-                kf.seal(m, buf, w, Z.ctr[M_EST], True)
-            Z.ctr[M_EST] = (Z.ctr[M_EST] + 1) & 0xF          # (no COUNTER signal: Tx counts)
-            Z.sent[M_EST] += 1
-            _log(Z, M_EST, m, buf, log_id, log_dlc, log_data)
-        lr = Z.last_rec
-        if (ek % Z.p_rec == 0 or lr[0] != o.recommended_mode or lr[1] != o.active_mode
-                or lr[2] != o.reason or lr[3] != o.override):
-            lr[0], lr[1], lr[2], lr[3] = o.recommended_mode, o.active_mode, o.reason, o.override
-            Z.awaiting += 1
-            Z.held = 1                                      # (lockstep: until answered)
-            m = M[M_REC]
-            w = kf.put(0, F[U_REC], o.recommended_mode)
-            w = kf.put(w, F[U_REC_GRADE], grade)
-            w = kf.put(w, F[U_REC_ACTIVE], o.active_mode)
-            w = kf.put(w, F[U_REC_REASON], o.reason)
-            w = kf.put(w, F[U_REC_OVERRIDE], o.override)
-            kf.seal(m, buf, w, Z.ctr[M_REC], True)
-            Z.ctr[M_REC] = (Z.ctr[M_REC] + 1) & 0xF
-            Z.sent[M_REC] += 1
-            _log(Z, M_REC, m, buf, log_id, log_dlc, log_data)
-            _app_recommend(Z, M, F, buf, reqlog, scratch_rx)
-            m = M[M_REQ]                                    # the app's answer
-            w = kf.put(0, F[U_KIND], Z.kind)
-            w = kf.put(w, F[U_MODE], Z.rmode)
-            w = kf.put(w, F[U_ID], Z.rid)
-            kf.seal(m, buf, w, Z.ctr[M_REQ], True)
-            Z.ctr[M_REQ] = (Z.ctr[M_REQ] + 1) & 0xF
-            Z.sent[M_REQ] += 1
-            ks.protect(m, SEC[S_REQ_TX], buf, ctx, msg, tag16, length)
-            _log(Z, M_REQ, m, buf, log_id, log_dlc, log_data)
-            release = _ecu_request(Z, M, F, RX, SEC, buf, crypto, ff, ff_first)
-        else:                   # (an answer still owed holds the command: lockstep broken)
-            Z.held = 1 if Z.awaiting else 0
-            release = Z.held == 0
-        _record(Z, o, inp, speed, supply, link, rows, hashbuf)
-        if release:
-            m = M[M_CMD]
-            _log(Z, M_CMD, m, held, log_id, log_dlc, log_data)
-            _plant_cmd(Z, M, F, RX, SEC, held, crypto)
+        got = ken.receive(Ea, M, F, ERX, ESEC, crypto, ff, ff_first, M_SENSORS, buf, m.dlc)
+        # ---- the ECU's tick (EcuNode.tick): its frames cross the bus in order, the command
+        # last (after the driver's answer when a MODE_RECOMMEND went out)
+        ek = E.k
+        nf, awaiting = ken.tick(Ea, M, F, FAULT_BITS, ERX, ESEC, crypto, P, T, S, I, O,
+                                got == ken.RX_SAMPLE, E.counts[0], E.counts[1], E.counts[2],
+                                E.counts[3], out_mi, out)
+        held = awaiting > 0
+        for j in range(1, nf):
+            mi = out_mi[j]
+            _log(Z, mi, M[mi], out[j], log_id, log_dlc, log_data)
+            if mi == M_STATUS:                              # (the app's clock)
+                Z.n_status += 1
+                Z.t = (Z.n_status - 1) * Z.app_p_status
+            elif mi == M_REC:
+                for i in range(8):
+                    buf[i] = out[j, i]
+                _app_recommend(Z, M, F, buf, reqlog, scratch_rx)
+                m = M[M_REQ]                                # the app's answer
+                w = kf.put(0, F[U_KIND], Z.kind)
+                w = kf.put(w, F[U_MODE], Z.rmode)
+                w = kf.put(w, F[U_ID], Z.rid)
+                kf.seal(m, buf, w, Z.ctr[M_REQ], True)
+                _send(Z, M_REQ)
+                ks.protect(m, SEC[S_REQ_TX], buf, ctx, msg, tag16, length)
+                _log(Z, M_REQ, m, buf, log_id, log_dlc, log_data)
+                if (ken.receive(Ea, M, F, ERX, ESEC, crypto, ff, ff_first, M_REQ, buf, m.dlc)
+                        == ken.RX_RELEASE):
+                    held = False
+        Z.hpos = ken.record(Ea, I, O, hashbuf, Z.hpos, rows[ek])
+        if not held:
+            _log(Z, M_CMD, M[M_CMD], out[0], log_id, log_dlc, log_data)
+            _plant_cmd(Z, M, F, PRX, SEC, out[0], crypto)
         # ---- the plant steps (PlantNode.step)
         if Z.cmd_fresh == 0:
             return LOCKSTEP_BROKEN
