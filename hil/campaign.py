@@ -472,11 +472,21 @@ def _limits(vehicle, rs, route) -> dict:
 
 @functools.lru_cache(maxsize=64)
 def _limit_values(vehicle, gq: float, speed: float, convention: str, cutoff: float) -> dict:
+    """The limits' values, kept in the design cache (``calib.cache``: keyed by the vehicle,
+    the road and the design code; shared by a campaign's workers, which would otherwise each
+    solve them for every vehicle: a second or two of Riccati solves per segment, more than a
+    case's drive)."""
+    import pickle
+
+    from calib import cache
     from calib.linear import physical_limits
     from calib.model import linear_model
 
-    res = physical_limits(linear_model(vehicle, gq, speed, convention, cutoff))
-    return {name: r.value for name, r in res.items()}
+    def compute() -> dict:
+        res = physical_limits(linear_model(vehicle, gq, speed, convention, cutoff))
+        return {name: r.value for name, r in res.items()}
+    parts = (pickle.dumps(vehicle, protocol=5), repr((gq, speed, convention, cutoff)).encode())
+    return cache.cached("limits", parts, compute)
 
 
 # ------------------------------------------------------------------ the database
