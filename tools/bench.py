@@ -16,7 +16,8 @@ stage: a profile's shares scaled to the unprofiled tick), ``hil_sim_2s_wall_s`` 
 ``python -m hil sim --duration 2`` process, start-up included, median of three after a
 warm-up run), ``hil_lockstep_rtf``
 (``hil run --pace lockstep`` over the hub), ``realtime_missed_deadline_ratio`` (60 s at 1 kHz,
-``--pace realtime``), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
+``--pace realtime``; ``realtime_with_tester_...`` with a UDS tester reading four DIDs every
+20 ms on the hub), ``ga_tune_s`` (``tools.tune_ga_lqr.tune`` with its defaults), and the
 machine: ``cpu_model``, ``cpu_count``, ``python``, ``blas_cores``, ``blas_threads``
 (OpenBLAS's kernels and threads, ``calib.blas``). ``--quick`` shortens every run (a smoke test
 of the tool, not a measurement). Each figure is measured on this machine, once; run it on an
@@ -47,6 +48,7 @@ GOALS = {"ecu_step_us_p99": ("<=", 200.0), "sil_rtf": (">=", 100.0),
          "sil_tick_over_c_core": ("<=", 25.0), "ecu_tick_us_p99": ("<=", 20.0),
          "hil_sim_2s_wall_s": ("<=", 2.0),
          "hil_lockstep_rtf": (">=", 1.5), "realtime_missed_deadline_ratio": ("<", 0.001),
+         "realtime_with_tester_missed_deadline_ratio": ("<", 0.001),
          "ga_tune_s": ("<=", 10.0)}
 
 
@@ -246,7 +248,12 @@ def hil_sim_wall_s(duration_s: float, runs: int = 3) -> float:
     return float(np.median(walls))
 
 
-def hil_run(pace: str, duration_s: float | None) -> dict:
+def hil_run(pace: str, duration_s: float | None, tester: bool = False) -> dict:
+    """``hil run`` over the hub; its ``bench`` figures. ``tester``: a UDS tester on the hub
+    (udsoncan, authenticated with the run's secret, ``hil.diag``) reads four DIDs every
+    ``TESTER_EVERY_TICKS`` ms while the bench drives; its requests and errors are added."""
+    import threading
+
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "hil", "run", "--route", "full_road_section", "--mode",
                "auto", "--seed", "1", "--pace", pace, "--out", tmp, "--json"]
@@ -257,15 +264,69 @@ def hil_run(pace: str, duration_s: float | None) -> dict:
             # (GOALS); the run's user-facing timing limits must not abort it (a loaded host
             # misses more deadlines), every other check of the run's verdict still does
             cmd += ["--max-missed-ratio", "1", "--max-lost-ratio", "1"]
-        res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-        if res.returncode != 0:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        first = proc.stderr.readline()                # "bus: remote ws://127.0.0.1:PORT/ ..."
+        err: list[str] = [first]
+        drain = threading.Thread(target=lambda: err.extend(proc.stderr), daemon=True)
+        drain.start()
+        stop, polled = threading.Event(), {"requests": 0, "errors": 0}
+        poller = None
+        if tester:
+            poller = threading.Thread(target=_uds_poller, daemon=True,
+                                      args=(first.split()[2], Path(tmp), stop, polled))
+            poller.start()
+        out = proc.stdout.read()
+        proc.wait()
+        stop.set()
+        if poller is not None:
+            poller.join(10)
+        drain.join(10)
+        if proc.returncode != 0:
             try:
                 failed = [f"{c['name']} = {c['value']} ({c['limit']})"
-                          for c in json.loads(res.stdout)["checks"] if not c["ok"]]
+                          for c in json.loads(out)["checks"] if not c["ok"]]
             except (ValueError, KeyError, TypeError):
-                failed = res.stderr.strip().splitlines()[-1:]
-            raise RuntimeError(f"hil run --pace {pace} failed ({res.returncode}): {failed}")
-        return json.loads(res.stdout)["bench"]
+                failed = "".join(err).strip().splitlines()[-1:]
+            raise RuntimeError(f"hil run --pace {pace} failed ({proc.returncode}): {failed}")
+        got = json.loads(out)["bench"]
+        if tester:
+            if not polled["requests"]:
+                raise RuntimeError(f"the UDS tester got no answer ({polled})")
+            got["tester"] = polled
+        return got
+
+
+def _uds_poller(url: str, out: Path, stop, polled: dict) -> None:
+    """The realtime run's UDS tester (``hil_run``): read four DIDs every 20 ms until the run
+    ends."""
+    from hil.bus import resolve
+    from hil.diag import client, tester_bus
+    from hil.secoc import load_key
+
+    secret = out / "hub.secret"
+    t_end = time.monotonic() + 60
+    while not secret.exists() and time.monotonic() < t_end and not stop.is_set():
+        time.sleep(0.05)
+    spec, _ = resolve("remote", url)
+    bus = tester_bus(spec, load_key(secret))
+    try:
+        with client(bus, 1.0) as c:
+            while not stop.is_set():
+                t0 = time.monotonic()
+                try:
+                    c.read_data_by_identifier([0x0100, 0x0101, 0x0103, 0x0106])
+                    polled["requests"] += 1
+                except Exception:  # noqa: BLE001 - the run ending under a request
+                    polled["errors"] += 1
+                    if stop.is_set():
+                        break
+                time.sleep(max(0.0, TESTER_EVERY_TICKS * 1e-3 - (time.monotonic() - t0)))
+    finally:
+        try:
+            bus.shutdown()
+        except OSError:                 # (the hub went first)
+            pass
 
 
 def secoc_us(n: int = 20000) -> tuple[float, float]:
@@ -383,6 +444,10 @@ def run(quick: bool, progress=print) -> dict:
     rt = hil_run("realtime", 3.0 if quick else 60.0)
     out["realtime_missed_deadline_ratio"] = rt["realtime"]["missed_deadline_ratio"]
     out["realtime"] = rt["realtime"]
+    progress("hil run --pace realtime, 60 s, a UDS tester polling every 20 ms ...")
+    rt = hil_run("realtime", 3.0 if quick else 60.0, tester=True)
+    out["realtime_with_tester_missed_deadline_ratio"] = rt["realtime"]["missed_deadline_ratio"]
+    out["realtime_with_tester"] = {**rt["realtime"], "tester": rt["tester"]}
     progress("campaign throughput: 1 and 2 local workers, a scheduler with 2 workers ...")
     with tempfile.TemporaryDirectory() as tmp:
         out.update(campaign_throughput(quick, Path(tmp)))
@@ -417,7 +482,8 @@ def main(argv: list[str] | None = None) -> int:
                   "secoc_sign_us", "secoc_verify_us", "sil_rtf", "sil_tick_us",
                   "c_core_tick_us", "sil_tick_over_c_core", "hil_sim_2s_wall_s",
                   "hil_lockstep_rtf",
-                  "realtime_missed_deadline_ratio", "ga_tune_s"):
+                  "realtime_missed_deadline_ratio",
+                  "realtime_with_tester_missed_deadline_ratio", "ga_tune_s"):
             g = r["goals"].get(k)
             table.add_row(k, f"{r[k]:.4g}", g["goal"] if g else "", ("yes" if g["met"] else "NO") if g else "")
         Console().print(table)
