@@ -6,14 +6,15 @@ Python takes over at the events of a plain SIL run (its calendar): every ``CHUNK
 sensors' noise for the next block is drawn (the same stream as ``hil.sensors.SensorSuite``'s
 blocks of 256), and at ``run_in_process``'s progress ticks progress is shown; each time the
 trace hash takes the rows hashed since, ``on_frame`` sees the frames in bus order and the
-driver's requests join the app's log. A fault campaign's
-injector, a driver policy of Python (a script, a person), the C parity record, a run without
-SecOC or a node that already ran take ``hil.nodes.run_in_process`` instead.
+driver's requests join the app's log. A fault campaign's injector, a driver policy of Python
+(a script, a person), the C parity record, a run without SecOC or a node that already ran
+take ``hil.nodes.run_in_process`` instead.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 from typing import Callable, Optional
 
 import numpy as np
@@ -67,7 +68,11 @@ def _noise_tick(plant: PlantNode) -> int:
     without one."""
     if plant.noise_step is None:
         return plant.n + 1
-    t = plant.noise_step[0]
+    t = float(plant.noise_step[0])
+    if not t < math.inf:                    # (NaN or +inf: never, as k * dt >= t says)
+        return plant.n + 1
+    if t <= 0.0:
+        return 0
     k = max(0, int(t / plant.dt) - 2)
     while k * plant.dt < t:
         k += 1

@@ -410,7 +410,7 @@ class EcuNode:
         self.rows = array("q")              # per tick: ECU_TRACE
         self.hashed: Optional[bytearray] = None   # (a bytearray: every tick's hashed row)
 
-    # the node's state, read (and written) by name
+    # the node's state, read by name
     @property
     def k(self) -> int:
         return int(self.E[0]["k"])
