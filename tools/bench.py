@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -251,7 +252,8 @@ def hil_sim_wall_s(duration_s: float, runs: int = 3) -> float:
 def hil_run(pace: str, duration_s: float | None, tester: bool = False) -> dict:
     """``hil run`` over the hub; its ``bench`` figures. ``tester``: a UDS tester on the hub
     (udsoncan, authenticated with the run's secret, ``hil.diag``) reads four DIDs every
-    ``TESTER_EVERY_TICKS`` ms while the bench drives; its requests and errors are added."""
+    ``TESTER_EVERY_TICKS`` ms while the bench drives (``_uds_poller``); its requests and
+    errors (requests before the ECU was up) are added."""
     import threading
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -274,7 +276,8 @@ def hil_run(pace: str, duration_s: float | None, tester: bool = False) -> dict:
         poller = None
         if tester:
             poller = threading.Thread(target=_uds_poller, daemon=True,
-                                      args=(first.split()[2], Path(tmp), stop, polled))
+                                      args=(first.split()[2], Path(tmp), stop, polled,
+                                            duration_s or 60.0))
             poller.start()
         out = proc.stdout.read()
         proc.wait()
@@ -297,30 +300,37 @@ def hil_run(pace: str, duration_s: float | None, tester: bool = False) -> dict:
         return got
 
 
-def _uds_poller(url: str, out: Path, stop, polled: dict) -> None:
-    """The realtime run's UDS tester (``hil_run``): read four DIDs every 20 ms until the run
-    ends."""
+def _uds_poller(url: str, out: Path, stop, polled: dict, duration_s: float) -> None:
+    """The realtime run's UDS tester (``hil_run``): read four DIDs every 20 ms from the ECU's
+    first answer (its process is up: the drive starts) for the drive's duration less a second,
+    so that it stops before the bench does (a request cut off by the hub closing leaves
+    udsoncan's threads printing errors)."""
     from hil.bus import resolve
     from hil.diag import client, tester_bus
     from hil.secoc import load_key
 
+    import logging
+
+    for name in ("UdsClient", "isotp"):       # (the requests before the ECU is up: counted)
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     secret = out / "hub.secret"
     t_end = time.monotonic() + 60
     while not secret.exists() and time.monotonic() < t_end and not stop.is_set():
         time.sleep(0.05)
     spec, _ = resolve("remote", url)
     bus = tester_bus(spec, load_key(secret))
+    until = math.inf
     try:
         with client(bus, 1.0) as c:
-            while not stop.is_set():
+            while not stop.is_set() and time.monotonic() < until:
                 t0 = time.monotonic()
                 try:
                     c.read_data_by_identifier([0x0100, 0x0101, 0x0103, 0x0106])
                     polled["requests"] += 1
-                except Exception:  # noqa: BLE001 - the run ending under a request
+                    if until == math.inf:
+                        until = t0 + duration_s - 1.0
+                except Exception:  # noqa: BLE001 - before the ECU is up, or the run ended
                     polled["errors"] += 1
-                    if stop.is_set():
-                        break
                 time.sleep(max(0.0, TESTER_EVERY_TICKS * 1e-3 - (time.monotonic() - t0)))
     finally:
         try:
