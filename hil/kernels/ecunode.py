@@ -24,7 +24,7 @@ from firmware.safety import FAULT_AUTH, FAULT_TIMEOUT
 from firmware.tick import ecu
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
-from hil.kernels.bus import (M_CMD, M_EST, M_REC, M_REQ, M_SENSORS, M_SPEED, M_STATUS,
+from hil.kernels.bus import (M_CMD, M_EST, M_REC, M_SENSORS, M_SPEED, M_STATUS,
                              M_SUPPLY, NMSG, R_REQ, R_SENSORS, R_SPEED, R_SUPPLY, S_CMD_TX,
                              S_REQ_RX, U_DTD_EST, U_DUTY, U_ENABLE, U_FAULTS, U_FORCE, U_GQ,
                              U_ID, U_KIND, U_MODE, U_REC, U_REC_ACTIVE, U_REC_GRADE,

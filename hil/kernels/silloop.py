@@ -31,7 +31,7 @@ from hil.kernels import ecunode as ken
 from hil.kernels import frames as kf
 from hil.kernels import plant as kp
 from hil.kernels import secoc as ks
-from hil.kernels.bus import (M_CMD, M_ENERGY, M_EST, M_REC, M_REQ, M_SENSORS, M_SPEED,
+from hil.kernels.bus import (M_CMD, M_ENERGY, M_REC, M_REQ, M_SENSORS, M_SPEED,
                              M_STATUS, M_SUPPLY, M_TRUTH, NMSG, S_CMD_RX, S_REQ_TX, U_DRAWN,
                              U_DUTY, U_ENABLE, U_ID, U_KIND, U_MODE, U_REC, U_REC_ACTIVE,
                              U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ, U_SPEED,
