@@ -25,7 +25,7 @@ from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels import silloop as kl
-from hil.nodes import REQ_KINDS, AppNode, EcuNode, PlantNode
+from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode
 
 CHUNK = 16384            # ticks between Python's turns (a multiple of the noise block, 256)
 _OWN = {"PLANT": ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS",
@@ -107,7 +107,10 @@ def _sil_state(plant: PlantNode, app: AppNode, log_on: bool) -> np.ndarray:
 def _plant_receiver(plant: PlantNode) -> np.ndarray:
     """The plant's receiver of ACTUATOR_CMD (its own spec: COUNTER and CHECKSUM checked)."""
     rx, st = kf.rx_table(1), plant.cmd_rx
-    rx[0] = (1, 0, 0, 1, st.valid, st.good_run, st.last_counter, st.last_rx_tick, st.faults)
+    kf.supervise(rx[0], plant.codec.specs[ID["ACTUATOR_CMD"]])
+    r = rx[0]
+    r["valid"], r["good_run"], r["faults"] = st.valid, st.good_run, st.faults
+    r["last_counter"], r["last_rx_tick"] = st.last_counter, st.last_rx_tick
     return rx
 
 
@@ -207,7 +210,7 @@ def _put_back(z, x, rows, prx, sec, plant, ecu_node, app) -> None:
     plant.cmd_tick, plant.cmd_fresh, plant.cmd_seq = int(z.cmd_tick), bool(z.cmd_fresh), \
         int(z.cmd_seq)
     plant.bad_cmd_frames, plant.stale_cmd_frames = int(z.bad_cmd), int(z.stale_cmd)
-    plant.missed_cmds, plant.fallback_ticks = int(z.missed), int(z.fallback_ticks)
+    plant.fallback_ticks = int(z.fallback_ticks)     # (missed_cmds: none, or lockstep broke)
     plant.auth_failures, plant.auth_failures_booked = int(z.auth_failures), int(z.auth_booked)
     for node in (plant, app):
         for name in _OWN[node.name]:

@@ -371,10 +371,7 @@ class EcuNode:
         self.RX = kf.rx_table(len(_RX_ROWS))
         self._mi = {}                       # frame ID -> message index of the receive table
         for name, (row, mi) in _RX_ROWS.items():
-            spec = self.rx_specs[ID[name]]
-            r = self.RX[row]
-            r["cc"], r["timeout"] = spec.counter_bit is not None, spec.timeout_ticks
-            r["min_interval"], r["recover"] = spec.min_interval_ticks, spec.recover_frames
+            kf.supervise(self.RX[row], self.rx_specs[ID[name]])
             self._mi[ID[name]] = mi
         # SecOC: the command signed, the driver's request verified (libcrypto's CMAC)
         self.SEC = kf.table(ks.SEC, 4)

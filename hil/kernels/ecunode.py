@@ -36,7 +36,7 @@ ECU_NODE = np.dtype([
     ("k", "i8"), ("speed_raw", "i8"), ("supply_new", "i8"), ("req_kind", "i8"),
     ("req_mode", "i8"), ("req_id", "i8"), ("awaiting", "i8"), ("link_faults", "i8"),
     ("seq", "i8"), ("status_faults", "i8"), ("last_rec", "i8", (4,)), ("p_status", "i8"),
-    ("p_rec", "i8"), ("counts", "i8", (4,)), ("ff_stamp", "i8"), ("rec_sent", "i8"),
+    ("p_rec", "i8"), ("counts", "i8", (4,)), ("ff_stamp", "i8"),
     ("speed", "i8"), ("supply", "i8"), ("link", "i8"),        # the last tick's, for record
     ("lockstep", "i8"), ("secured", "i8"),
     ("ctr", "i8", (NMSG,)), ("sent", "i8", (NMSG,))])
@@ -56,6 +56,16 @@ def note(E, ff, ff_first, mi, faults) -> None:
                 ff_first[mi, b] = E.ff_stamp
                 E.ff_stamp += 1
             ff[mi, b] += 1
+
+
+@njit
+def _value(E, F, m, rx, ff, ff_first, mi, u, buf, n):
+    """A one-signal message (VEHICLE_SPEED, PLANT_SUPPLY: unsigned counts): its raw value
+    if the frame is usable, else -1 (the node's "none") with its faults noted."""
+    if kf.receive(F, m, rx, buf, n, E.k):
+        return kf.get(kf.load(buf, m.dlc), F[u])
+    note(E, ff, ff_first, mi, rx.faults)
+    return -1
 
 
 @njit
@@ -80,16 +90,14 @@ def receive(Ea, M, F, RX, SEC, crypto, ff, ff_first, mi, buf, n):
         note(E, ff, ff_first, mi, RX[R_SENSORS].faults)
         return RX_NO_SAMPLE
     if mi == M_SPEED:
-        if kf.receive(F, m, RX[R_SPEED], buf, n, E.k):
-            E.speed_raw = kf.get(kf.load(buf, m.dlc), F[U_SPEED])
-        else:
-            note(E, ff, ff_first, mi, RX[R_SPEED].faults)
+        v = _value(E, F, m, RX[R_SPEED], ff, ff_first, mi, U_SPEED, buf, n)
+        if v >= 0:
+            E.speed_raw = v
         return RX_NONE
     if mi == M_SUPPLY:
-        if kf.receive(F, m, RX[R_SUPPLY], buf, n, E.k):
-            E.supply_new = kf.get(kf.load(buf, m.dlc), F[U_SUPPLY])
-        else:
-            note(E, ff, ff_first, mi, RX[R_SUPPLY].faults)
+        v = _value(E, F, m, RX[R_SUPPLY], ff, ff_first, mi, U_SUPPLY, buf, n)
+        if v >= 0:
+            E.supply_new = v
         return RX_NONE
     # DRIVER_REQUEST: forged or replayed frames are not the app's answer (state untouched)
     ctx, msg, tag16, length = crypto
@@ -122,8 +130,8 @@ def tick(Ea, M, F, FAULT_BITS, RX, SEC, crypto, P, T, S, I, O, sample, c0, c1, c
     """``EcuNode.tick`` from its pending sample (``sample``: the counts ``c0..c3``; else
     none) to the frames it sends, in ``out_mi``/``out`` (message index, payload): the
     signed ACTUATOR_CMD first, then ECU_STATUS and ECU_ESTIMATES (every ``p_status``
-    ticks) and MODE_RECOMMEND (every ``p_rec`` ticks and on change: ``E.rec_sent``, one more
-    answer awaited; none in realtime, where nobody waits). Where the command goes (held,
+    ticks) and MODE_RECOMMEND (every ``p_rec`` ticks and on change: one more answer awaited;
+    none in realtime, where nobody waits). Where the command goes (held,
     last, first) is the caller's. Returns (the number of frames, answers awaited)."""
     E = Ea[0]
     k = E.k
@@ -186,12 +194,10 @@ def tick(Ea, M, F, FAULT_BITS, RX, SEC, crypto, P, T, S, I, O, sample, c0, c1, c
         out_mi[nf + 1] = M_EST
         nf += 2
     lr = E.last_rec
-    E.rec_sent = 0
     if (k % E.p_rec == 0 or lr[0] != o.recommended_mode or lr[1] != o.active_mode
             or lr[2] != o.reason or lr[3] != o.override):
         lr[0], lr[1], lr[2], lr[3] = o.recommended_mode, o.active_mode, o.reason, o.override
         E.awaiting += 1
-        E.rec_sent = 1
         w = kf.put(0, F[U_REC], o.recommended_mode)
         w = kf.put(w, F[U_REC_GRADE], grade)
         w = kf.put(w, F[U_REC_ACTIVE], o.active_mode)

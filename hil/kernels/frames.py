@@ -26,6 +26,7 @@ import numpy as np
 from firmware import safety
 from firmware.kernels import INTERPRETED, njit
 from firmware.tick.layout import canonical
+from firmware.tick.util import round_half_away
 
 MSG = np.dtype([("id", "i8"), ("dlc", "i8"), ("counter_bit", "i8"), ("checksum_byte", "i8"),
                 ("id_crc", "i8"), ("range_first", "i8"), ("range_n", "i8")])
@@ -47,6 +48,14 @@ def table(dtype: np.dtype, n: int) -> np.ndarray:
     rows' fields are attributes, as numba's are)."""
     arr = np.zeros(n, canonical(dtype))
     return arr.view(np.recarray) if INTERPRETED else arr
+
+
+def supervise(row, spec) -> None:
+    """A receiver's row supervised as ``spec`` says (a ``firmware.safety.FrameSpec``: COUNTER
+    and CHECKSUM checked where it has them, timeout, minimum interval, recovery)."""
+    row["cc"] = spec.counter_bit is not None
+    row["timeout"], row["min_interval"] = spec.timeout_ticks, spec.min_interval_ticks
+    row["recover"] = spec.recover_frames
 
 
 def rx_table(n: int) -> np.ndarray:
@@ -84,12 +93,6 @@ def put(w, f, v):
     elif v < f.lo:
         v = int(f.lo)
     return w | ((v & int(f.mask)) << int(f.start))
-
-
-@njit
-def round_half_away(x):
-    """``firmware.fixedpoint.round_half_away`` (x finite)."""
-    return int(math.floor(x + 0.5)) if x >= 0.0 else -int(math.floor(-x + 0.5))
 
 
 @njit

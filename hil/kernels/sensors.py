@@ -29,14 +29,18 @@ def quantise(values, z, std, gain, range_min, lsb, full):
 def quantise_into(values, z, std, gain, range_min, lsb, full, out) -> None:
     """``quantise`` into ``out``."""
     for i in range(values.shape[0]):
-        v = values[i] + z[i] * std[i] * gain[i]
-        if math.isnan(v):
-            out[i] = 0
-            continue
-        raw = (v - range_min[i]) / lsb[i]
-        if raw <= 0.0:
-            out[i] = 0
-        elif raw >= full[i]:
-            out[i] = full[i]
-        else:
-            out[i] = int(math.floor(raw + 0.5))
+        out[i] = to_counts(values[i] + z[i] * std[i] * gain[i], range_min[i], lsb[i], full[i])
+
+
+@njit
+def to_counts(v, range_min, lsb, full):
+    """``hil.sensors.to_counts``: a value as ADC counts, NaN at the lower rail, rounded half
+    away from zero, saturated at 0 and ``full``."""
+    if math.isnan(v):
+        return 0
+    raw = (v - range_min) / lsb
+    if raw <= 0.0:
+        return 0
+    if raw >= full:
+        return full
+    return int(math.floor(raw + 0.5))

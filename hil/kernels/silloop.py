@@ -37,7 +37,7 @@ from hil.kernels.bus import (M_CMD, M_ENERGY, M_REC, M_REQ, M_SENSORS, M_SPEED,
                              U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ, U_SPEED,
                              U_STORED, U_SUPPLY, U_TRUE_DTD, U_TRUE_GRADE, U_TRUE_ROAD,
                              U_TRUE_SWS)
-from hil.kernels.sensors import quantise_into
+from hil.kernels.sensors import quantise_into, to_counts
 
 POLICIES = ("auto", "fixed", "refuse")                   # the driver policies compiled here
 ROW_BYTES = ken.ROW_BYTES
@@ -50,7 +50,7 @@ SIL = np.dtype([
     ("k", "i8"), ("n", "i8"), ("dt", "f8"), ("p_speed", "i8"), ("p_supply", "i8"),
     ("p_truth", "i8"), ("p_energy", "i8"), ("cmd_timeout", "i8"), ("cmd_duty", "i8"),
     ("cmd_regen", "i8"), ("cmd_enable", "i8"), ("cmd_tick", "i8"), ("cmd_fresh", "i8"),
-    ("cmd_seq", "i8"), ("bad_cmd", "i8"), ("stale_cmd", "i8"), ("missed", "i8"),
+    ("cmd_seq", "i8"), ("bad_cmd", "i8"), ("stale_cmd", "i8"),
     ("fallback_ticks", "i8"), ("auth_failures", "i8"), ("auth_booked", "i8"),
     ("has_actuator", "i8"), ("track", "i8"), ("ind_l", "f8"), ("zf", "f8"),
     ("in_bump", "i8"), ("lifted", "i8"), ("bump_contacts", "i8"), ("lift_offs", "i8"),
@@ -195,17 +195,9 @@ def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, p
             ken.receive(Ea, M, F, ERX, ESEC, crypto, ff, ff_first, M_SPEED, buf, m.dlc)
         if k % Z.p_supply == 0:
             m = M[M_SUPPLY]
-            volts = v[0] + Z.sup_std * sup_noise[Z.supply_next]
+            c = to_counts(v[0] + Z.sup_std * sup_noise[Z.supply_next], Z.sup_min, Z.sup_lsb,
+                          Z.sup_full)
             Z.supply_next += 1
-            raw = (volts - Z.sup_min) / Z.sup_lsb
-            if np.isnan(volts):
-                c = 0
-            elif raw <= 0.0:
-                c = 0
-            elif raw >= Z.sup_full:
-                c = Z.sup_full
-            else:
-                c = kf.round_half_away(raw)
             kf.seal(m, buf, kf.put(0, F[U_SUPPLY], c), Z.ctr[M_SUPPLY], True)
             _send(Z, M_SUPPLY)
             _log(Z, M_SUPPLY, m, buf, log_id, log_dlc, log_data)
