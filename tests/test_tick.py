@@ -1,142 +1,86 @@
-"""The compiled tick (firmware.tick) against the Python ECU it replaces (firmware.ecu with
-its paths): the same outputs on every tick, the same DTC memory, over drives with faults of
-every kind the inputs can carry; and the records' layout."""
+"""The compiled tick (firmware.tick) under faults of every kind its inputs can carry: the
+faulted drives of ``tests/golden/faulted.py`` against their pinned digests (every output,
+the fixed-point hand-over, the DTC memory, UDS answers; pinned from the Python ECU the
+compiled tick replaced, which gave the same digests), interpreted against compiled; and the
+records' layout."""
 
 import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from calib.ecu_params import build
 from calib.fx_tables import build_tables
-from firmware import ecu as py_ecu
 from firmware.diag import uds
-from firmware.path import FixedPath
+from firmware.ecu import Inputs
 from firmware.tick import Ecu
 from firmware.tick import ecu as tick_ecu
 from firmware.tick.layout import params_record
 from hil.config import default_vehicle
-from hil.sil import ecu_params
-from tests import golden
-from tests.golden import ticks as per_tick
+from tests.golden import faulted
 
+ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()
 P = build(CFG)
-
-
-def recorded_inputs(name: str) -> list:
-    """The ECU's inputs of a golden scenario's drive, tick by tick (tests/golden/ticks)."""
-    c = per_tick.load(name)
-
-    def opt(v):
-        return None if v < 0 else int(v)
-
-    return [py_ecu.Inputs(int(c["tick"][k]), *(opt(c[n][k]) for n in (
-        "body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")),
-        int(c["req_kind"][k]), int(c["req_mode"][k]), int(c["req_counter"][k]),
-        int(c["link_faults"][k]), opt(c["supply"][k])) for k in range(len(c["tick"]))]
-
-
-def faulted(inputs: list, seed: int) -> list:
-    """The inputs with faults of every kind the receive path and the sensors can give: a
-    channel missing, at a rail, stuck, out of range or not an int; a supply sample low, high
-    or clipped; link-fault bits; driver requests of every kind (and invalid ones)."""
-    rng = np.random.default_rng(seed)
-    out = []
-    stuck = {}
-    for inp in inputs:
-        d = inp._asdict()
-        k = inp.tick
-        names = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
-        if k % 1500 == 700:                                  # a stuck channel, 400 ticks
-            name = str(rng.choice(names[:4]))
-            stuck = {name: (k + 400, d[name])}
-        for name, (until, value) in list(stuck.items()):
-            if k < until and value is not None:
-                d[name] = value
-        if rng.random() < 0.004:
-            name = names[rng.integers(5)]
-            d[name] = (None, 0, 4095, -3, 70000, 2.5, True, float("nan"))[rng.integers(8)]
-        if rng.random() < 0.002:
-            d["link_faults"] = int(rng.choice([1 << 10, 1 << 11, 1 << 12, 1 << 13, 1 << 5]))
-        if k % 10 == 0 and rng.random() < 0.05:
-            d["supply"] = int(rng.choice([0, 4095, 1200, 3900, 100]))
-        if k % 100 == 50 and rng.random() < 0.3:
-            d["req_kind"] = int(rng.integers(0, 5))
-            d["req_mode"] = int(rng.integers(-1, 7))
-            d["req_counter"] = int(rng.integers(0, 16))
-        out.append(py_ecu.Inputs(**d))
-    return out
-
-
-def drive_both(params, inputs, fixed: bool):
-    tables = build_tables(params) if fixed else None
-    ref = py_ecu.init(params, FixedPath(params, tables, record=True) if fixed else None)
-    new = Ecu(params, tables, record=fixed)
-    for k, inp in enumerate(inputs):
-        ref, want = py_ecu.step(ref, inp)
-        got = new.step(inp)
-        assert got == want, f"tick {k}: {got} != {want}"
-        if fixed:
-            assert new.log[-1] == ref.path.log[-1], f"tick {k}: the fixed-point hand-over"
-    return ref, new
-
-
-def assert_same_memory(ref, new):
-    for i, (a, b) in enumerate(zip(ref.diag.dtc.entries, new.diag.dtc.entries, strict=True)):
-        for f in ("status", "fdc", "passes", "occurrences", "aging", "first_tick",
-                  "snapshot"):
-            assert getattr(a, f) == getattr(b, f), (i, f)
-    assert ref.diag.view == new.diag.view
-    assert ref.akf.guard_hits == new.guard_hits
+LONG = [n for n, d in faulted.DRIVES.items() if d[3] >= 20000]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name,fixed,seed", [("comfort_b", False, 1), ("comfort_b", False, 2),
-                                             ("fixed_point_auto", True, 3)])
-def test_compiled_tick_equals_the_python_ecu_under_faults(name, fixed, seed):
-    params = ecu_params(CFG, golden.BY_NAME[name].mode)
-    bad = faulted(recorded_inputs(name)[:20000], seed)
-    ref, new = drive_both(params, bad, fixed)
-    assert_same_memory(ref, new)
+@pytest.mark.parametrize("name", LONG)
+def test_faulted_drive_gives_its_pinned_digests(name):
+    got = faulted.drive(name)
+    assert got == faulted.load()[name], "python -m tests.golden.faulted shows what differs"
     # the drive did reach the fault paths: DTCs confirmed, of the sensors' and the frames'
-    confirmed = {tick_ecu.dtc.DTCS[i].name for i, e in enumerate(new.diag.dtc.entries)
-                 if e.status & 0x08}
-    assert len(confirmed) >= 5, confirmed
+    assert len(got["confirmed"]) >= 15, got["confirmed"]
 
 
 def test_reset_keeps_the_dtc_memory_and_starts_a_cycle():
-    inputs = faulted(recorded_inputs("comfort_b")[:3000], 4)
-    ref, new = drive_both(P, inputs, False)
-    assert any(e.status & 0x08 for e in new.diag.dtc.entries)
-    new.diag.session = 3
-    assert uds.handle(new.diag, P, 3000, b"\x11\x01") == b"\x51\x01"
-    assert new.diag.reset_requested == 1
-    new.reset()
-    ref = py_ecu.reset(ref, None)
-    assert new.diag.session == 1 and not new.diag.reset_requested and new.tick == -1
-    assert_same_memory(ref, new)
-    for k, inp in enumerate(inputs[:500]):
-        ref, want = py_ecu.step(ref, inp)
-        assert new.step(inp) == want, k
+    """A UDS ECU reset (0x11 01) mid-drive: the state starts again (session default, tick
+    -1), the DTC memory stays, the drive after it is pinned too."""
+    got = faulted.drive("comfort_b_reset_4")
+    assert got["reset_answer"] == "5101" and got["after_reset"] == [1, 0, -1]
+    assert got == faulted.load()["comfort_b_reset_4"]
+
+
+def test_interpreted_faulted_drive_equals_the_compiled():
+    """The same source by the interpreter (NUMBA_DISABLE_JIT=1) on a faulted drive with a
+    reset: the pinned digests (the compiled run gives them above)."""
+    res = subprocess.run([sys.executable, "-m", "tests.golden.faulted", "comfort_b_reset_4"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600,
+                         env=dict(os.environ, NUMBA_DISABLE_JIT="1"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
 
 
 def test_uds_reads_the_compiled_memory():
-    """The UDS server reads and clears the record's DTC rows as it did the Python memory."""
-    inputs = faulted(recorded_inputs("comfort_b")[:4000], 5)
-    ref, new = drive_both(P, inputs, False)
-    for req in (b"\x19\x0a", b"\x19\x02\xff", b"\x22\x01\x00\x01\x03\x01\x06\x01\x02",
-                b"\x19\x01\x08"):
-        assert uds.handle(new.diag, P, 4000, req) == uds.handle(ref.diag, P, 4000, req), req
-    for i, e in enumerate(new.diag.dtc.entries):
-        if e.snapshot is not None:
+    """The UDS server reads the record's DTC rows (status by mask, count, snapshots) and a
+    clear resets them to the status after a clear."""
+    e = Ecu(P)
+    inputs = faulted.faulted(faulted.recorded_inputs("comfort_b")[:4000], 5)
+    for inp in inputs:
+        e.step(inp)
+    entries = list(e.diag.dtc.entries)
+    confirmed = {tick_ecu.dtc.DTCS[i].code: en.status for i, en in enumerate(entries)
+                 if en.status & 0x08}
+    assert len(confirmed) >= 5, confirmed
+    ans = uds.handle(e.diag, P, 4000, b"\x19\x02\x08")
+    assert ans[:3] == b"\x59\x02\xff"
+    got = {int.from_bytes(ans[i:i + 3], "big"): ans[i + 3] for i in range(3, len(ans), 4)}
+    assert got == confirmed
+    assert uds.handle(e.diag, P, 4000, b"\x19\x01\x08")[3:] == bytes([0x01, 0x00,
+                                                                       len(confirmed)])
+    for i, en in enumerate(entries):
+        if en.snapshot is not None:
             code = tick_ecu.dtc.DTCS[i].code.to_bytes(3, "big")
-            for sub in (b"\x04", b"\x06"):
-                req = b"\x19" + sub + code + b"\xff"
-                assert uds.handle(new.diag, P, 4000, req) == uds.handle(ref.diag, P, 4000,
-                                                                          req)
-    assert uds.handle(new.diag, P, 4000, b"\x14\xff\xff\xff") == b"\x54"
-    assert all(e.status == 0x50 and e.snapshot is None for e in new.diag.dtc.entries)
+            ans = uds.handle(e.diag, P, 4000, b"\x19\x04" + code + b"\xff")
+            assert ans[:6] == b"\x59\x04" + code + bytes([en.status])
+            assert ans[6:10] == b"\x01\x01\x02\x00"           # record 1, DID 0x0200
+            assert int.from_bytes(ans[10:14], "big") == en.snapshot.tick
+    assert uds.handle(e.diag, P, 4000, b"\x14\xff\xff\xff") == b"\x54"
+    assert all(en.status == 0x50 and en.snapshot is None for en in e.diag.dtc.entries)
 
 
 def test_no_record_field_is_shadowed_by_a_numpy_method():
@@ -175,9 +119,6 @@ def test_the_tick_allocates_nothing():
     """numba's allocation counters (NUMBA_NRT_STATS=1, in a child process) around a compiled
     loop of the tick: one tick and a thousand make the same allocations (those of the
     loop's own arguments), on both paths."""
-    import subprocess
-    import sys
-
     code = """
 import json, hil
 from numba import njit
@@ -212,7 +153,6 @@ for name, tables in (("float", None), ("fixed", build_tables(p))):
 print(json.dumps(out))
 """
     import json
-    import os
 
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={**os.environ, "NUMBA_NRT_STATS": "1"}, timeout=600)
