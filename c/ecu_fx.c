@@ -1,5 +1,5 @@
-/* See ecu_fx.h. Each function mirrors the one of the same name in firmware/fx or
- * firmware/control/fx (the table in firmware/fx/__init__.py). */
+/* See ecu_fx.h. Each function mirrors the one of the same name in firmware/fx/path.py
+ * (the table in firmware/fx/__init__.py). */
 #include "ecu_fx.h"
 
 #include <string.h>
@@ -238,7 +238,7 @@ static int32_t bppid_step(fx_state_t *s)
     }
     for (k = 0; k < 3; k++) {
         s->gains[k] = AM(FX_BP_SCALE, k, g[k], FX_F_NN, gf[k]);
-        /* the PID's gains: the network's, low-passed (firmware/control/bppid.py) */
+        /* the PID's gains: the network's, low-passed (firmware/control.py) */
         s->k_pid[k] = s->bp_fresh ? s->gains[k]
                     : add(s->k_pid[k], CM(FX_BP_GAIN_ALPHA, sub(s->gains[k], s->k_pid[k]),
                                           gf[k], gf[k]));

@@ -1,7 +1,7 @@
 /* The fixed-point control path of the ECU in C99: ADC counts -> scaled signals -> state
  * estimate -> controller -> PWM duty counts. Integer arithmetic only; every constant comes from
- * the generated tables (generated/ecu_tables.h, `make tables`). It is the Python of firmware/fx
- * and firmware/control/fx function by function (the table in firmware/fx/__init__.py): the
+ * the generated tables (generated/ecu_tables.h, `make tables`). It is firmware/fx/path.py
+ * function by function (the table in firmware/fx/__init__.py): the
  * parity test (tests/test_c_parity.py) feeds both the same recorded trace and requires
  * identical integers on every tick. Formats and conventions: firmware/fixedpoint.py. */
 #ifndef ECU_FX_H

@@ -12,7 +12,7 @@ import numpy as np
 
 from calib import cache
 from firmware.actuator import CURRENT_MARGIN
-from firmware.control.bppid import FORCE_REF_N
+from firmware.kernels.bppid import FORCE_REF_N
 from firmware.fixedpoint import best_frac, to_fixed
 from firmware.fx.tables import (ADC_FRAC, F_ACC, F_CUR, F_FORCE, F_JERK, F_NN, F_POS, F_TANH, F_VEL,
                                 F_VOLT, F_W, GAIN_HEADROOM_BITS, MEAS_FRAC, STATE_FRAC,

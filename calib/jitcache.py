@@ -2,7 +2,7 @@
 
 numba keeps a compiled function beside its source (``cache=True``) and checks only that
 file's time stamp: a function that calls functions of other files (the compiled tick,
-``firmware.tick.ecu.tick``, calls every stage) keeps their old machine code when only they
+``firmware.ecu.tick``, calls every stage) keeps their old machine code when only they
 change. So the cache lives in a directory named by a digest of every source numba compiles
 here (``firmware/``, whose constants are compiled in too, and ``hil/kernels/``): a change to
 any of them starts an empty directory, a checkout whose sources are the same shares it.

@@ -14,76 +14,75 @@
   duty in Q15, rounded half away from zero, saturated.
 * Regeneration: the terminal voltage is kept between ``min_ratio`` * EMF and the EMF (same
   sign), where the current flows against the EMF and the power into the storage element.
+
+Compiled (numba) over the state record's ``ctl.actuator`` fields.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import numpy as np
 
-from firmware.fixedpoint import round_half_away
-from firmware.params import ActuatorParams, PlantParams
+from firmware.kernels import njit
+from firmware.util import clamp, pymax, pymin, round_half_away
 
 Q15_ONE = 32768
 DUTY_MIN_Q15 = -32768
 DUTY_MAX_Q15 = 32767
 CURRENT_MARGIN = 0.95
 
-
-@dataclass
-class ActuatorState:
-    integ: float = 0.0
-    i_ref_prev: float = 0.0
-    voltage: float = 0.0
-    i_prev: float = 0.0
-    observer_valid: bool = False
-    emf: float = 0.0
+ACTUATOR = np.dtype([("integ", "f8"), ("i_ref_prev", "f8"), ("voltage", "f8"),
+                     ("i_prev", "f8"), ("observer_valid", "u1"), ("emf", "f8")])
 
 
+@njit
+def current_reference(pl, force: float, rel_vel: float, compensate: bool) -> float:
+    demand = force + (pl.friction * rel_vel if compensate else 0.0)
+    g = pl.efficiency if demand * rel_vel >= 0.0 else 1.0 / pl.efficiency
+    i_ref = demand / (g * pl.force_constant)
+    lim = CURRENT_MARGIN * pl.current_limit
+    return clamp(i_ref, -lim, lim)
+
+
+@njit
 def duty_to_q15(duty: float) -> int:
-    return min(DUTY_MAX_Q15, max(DUTY_MIN_Q15, round_half_away(duty * Q15_ONE)))
+    return pymin(DUTY_MAX_Q15, pymax(DUTY_MIN_Q15, round_half_away(duty * Q15_ONE)))
 
 
-def current_reference(plant: PlantParams, force: float, rel_vel: float, compensate: bool) -> float:
-    demand = force + (plant.friction * rel_vel if compensate else 0.0)
-    g = plant.efficiency if demand * rel_vel >= 0.0 else 1.0 / plant.efficiency
-    i_ref = demand / (g * plant.force_constant)
-    lim = CURRENT_MARGIN * plant.current_limit
-    return min(lim, max(-lim, i_ref))
-
-
-def step(params: ActuatorParams, plant: PlantParams, st: ActuatorState, i_ref: float,
-         i_meas: float, rel_vel: float, regen: bool, min_ratio: float,
-         rel_acc: float = 0.0, dt: float = 0.0) -> int:
+@njit
+def step(A, pl, S, i_ref: float, i_meas: float, rel_vel: float, regen: bool,
+                  min_ratio: float, rel_acc: float, dt: float) -> int:
     """Voltage for this tick from the current reference; returns the duty in Q15."""
-    if st.observer_valid:
-        emf = st.voltage - (i_meas - params.current_a * st.i_prev) / params.current_b
-        emf += plant.force_constant * rel_acc * dt
+    if S.observer_valid:
+        emf = S.voltage - (i_meas - A.current_a * S.i_prev) / A.current_b
+        emf += pl.force_constant * rel_acc * dt
     else:
-        emf = plant.force_constant * (rel_vel + 0.5 * dt * rel_acc)
-    st.emf = emf
-    v_dc = plant.storage_voltage if regen else plant.bus_voltage
+        emf = pl.force_constant * (rel_vel + 0.5 * dt * rel_acc)
+    S.emf = emf
+    v_dc = pl.storage_voltage if regen else pl.bus_voltage
     # the integral learns the model error seen on the last tick's reference
-    v_ff = emf + (i_ref - params.current_a * i_meas) / params.current_b
-    v = v_ff + st.integ
+    v_ff = emf + (i_ref - A.current_a * i_meas) / A.current_b
+    v = v_ff + S.integ
     lo, hi = -v_dc, v_dc
     if regen:
-        a, b = sorted((min_ratio * emf, emf))
-        lo, hi = max(lo, a), min(hi, b)
+        r = min_ratio * emf
+        a, b = (emf, r) if emf < r else (r, emf)     # (sorted((r, emf)))
+        lo, hi = pymax(lo, a), pymin(hi, b)
     saturated = v < lo or v > hi
-    v = min(hi, max(lo, v))
+    v = clamp(v, lo, hi)
     if not saturated:
-        st.integ += params.ki * (st.i_ref_prev - i_meas)
-        st.integ = min(params.integ_limit, max(-params.integ_limit, st.integ))
-    st.i_ref_prev = i_ref
+        S.integ += A.ki * (S.i_ref_prev - i_meas)
+        S.integ = clamp(S.integ, -A.integ_limit, A.integ_limit)
+    S.i_ref_prev = i_ref
     duty = duty_to_q15(v / v_dc)
-    st.voltage = duty / Q15_ONE * v_dc      # what the bridge applies (quantised duty)
-    st.i_prev = i_meas
-    st.observer_valid = True
+    S.voltage = duty / Q15_ONE * v_dc      # what the bridge applies (quantised duty)
+    S.i_prev = i_meas
+    S.observer_valid = True
     return duty
 
 
-def reset(st: ActuatorState) -> None:
-    st.integ = 0.0
-    st.i_ref_prev = 0.0
-    st.voltage = 0.0
-    st.observer_valid = False
+@njit
+def reset(S) -> None:
+    S.integ = 0.0
+    S.i_ref_prev = 0.0
+    S.voltage = 0.0
+    S.observer_valid = False

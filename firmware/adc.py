@@ -10,78 +10,81 @@ while the suspension moves so fast that the back-EMF alone drives it there
 (``AdcParams.current_rail_mps``). Such a sample is clipped (``measured`` is False: it says only
 that the quantity is beyond the range) and starts the count of rail samples again, so a sensor
 stuck at its rail is a fault ``rail_ticks`` samples after the motion no longer explains it.
+
+Compiled (numba) over the state record's ``adc`` fields (``firmware.layout``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import numpy as np
 
-from firmware.params import AdcParams
+from firmware.kernels import njit
 
 CHANNELS = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
-
-# fault bits of the channels (the low byte of the ECU's fault word)
+# fault-word bit of each channel (bits 0-4; firmware.safety defines the others)
 FAULT_BIT = {name: 1 << i for i, name in enumerate(CHANNELS)}
 SPEED = CHANNELS.index("speed")
 
-
-@dataclass
-class ChannelState:
-    value: float = 0.0          # last good value (SI)
-    counts: int | None = None   # its counts (None: no good sample yet; the value is 0)
-    rail_count: int = 0         # consecutive samples at a rail that nothing explains
-    clipped: bool = False       # this sample is at a rail
-    good_count: int = 0
-    faulty: bool = False
-
-
-@dataclass
-class AdcState:
-    channels: dict = field(default_factory=lambda: {name: ChannelState() for name in CHANNELS})
+N = len(CHANNELS)
+BA, WA, DEFL, CUR = (CHANNELS.index(n) for n in ("body_accel", "wheel_accel", "susp_defl",
+                                                   "motor_current"))
+STATE = np.dtype([
+    ("value", "f8", (N,)),        # last good value (SI)
+    ("counts", "i8", (N,)),       # its counts (-1: no good sample yet; the value is 0)
+    ("rail_count", "i8", (N,)),   # consecutive samples at a rail that nothing explains
+    ("clipped", "u1", (N,)),      # this sample is at a rail
+    ("good_count", "i8", (N,)),
+    ("faulty", "u1", (N,)),
+])
 
 
-def sample(params: AdcParams, state: AdcState, counts: tuple, explained: int = 0
-           ) -> tuple[tuple, int]:
-    """Convert one sample of every channel: the counts in ``CHANNELS`` order (one per channel,
-    else ValueError) -> (the SI values in that order, fault bits). ``explained``: the fault
-    bits of the channels whose rail this sample is explained (clipped, not faulty)."""
-    values = []
+def init(S) -> None:
+    S.counts[:] = -1
+
+
+@njit
+def sample(P, S, counts, explained) -> int:
+    """One sample of every channel (``counts`` in CHANNELS order, -1: none); returns the
+    fault bits. ``explained``: the bits of the channels whose rail this sample is
+    explained (clipped, not faulty)."""
     faults = 0
-    rail_ticks, recover_ticks = params.rail_ticks, params.recover_ticks
-    chans = (params.body_accel, params.wheel_accel, params.susp_defl, params.motor_current,
-             params.speed)
-    for i, (ch, st, c) in enumerate(zip(chans, state.channels.values(), counts, strict=True)):
-        if isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= ch.full_scale:
+    for i in range(N):
+        c = counts[i]
+        if 0 <= c <= P.full_scale[i]:
             # at a rail; speed legitimately sits at 0 counts when the car stands still
-            at_rail = c == ch.full_scale or (c == 0 and i != SPEED)
-            st.clipped = at_rail
-            st.rail_count = st.rail_count + 1 if at_rail and not explained >> i & 1 else 0
-            bad = st.rail_count >= rail_ticks
+            at_rail = c == P.full_scale[i] or (c == 0 and i != SPEED)
+            S.clipped[i] = at_rail
+            if at_rail and not (explained >> i) & 1:
+                S.rail_count[i] += 1
+            else:
+                S.rail_count[i] = 0
+            bad = S.rail_count[i] >= P.rail_ticks
         else:
-            st.clipped = False
+            S.clipped[i] = False
             bad = True
         if bad:
-            st.good_count = 0
-            st.faulty = True
+            S.good_count[i] = 0
+            S.faulty[i] = True
             faults |= 1 << i
         else:
-            st.good_count += 1
-            if st.faulty and st.good_count >= recover_ticks:
-                st.faulty = False
-            if st.faulty:
+            S.good_count[i] += 1
+            if S.faulty[i] and S.good_count[i] >= P.recover_ticks:
+                S.faulty[i] = False
+            if S.faulty[i]:
                 faults |= 1 << i
             else:
-                st.value = ch.range_min + c * ch.lsb
-                st.counts = c
-        values.append(st.value)
-    return tuple(values), faults
+                S.value[i] = P.range_min[i] + c * P.lsb[i]
+                S.counts[i] = c
+    return faults
 
 
-def measured(state: AdcState, names) -> bool:
-    """Every channel in ``names`` gave a measurement this tick: a good sample that is not at
-    a rail (a clipped sample says only that the quantity is beyond the range)."""
-    for name in names:
-        c = state.channels[name]
-        if c.faulty or c.clipped:
-            return False
-    return True
+@njit
+def measured(S, i) -> bool:
+    """Channel ``i`` gave a measurement this tick: a good sample not at a rail."""
+    return not (S.faulty[i] or S.clipped[i])
+
+
+@njit
+def good_count(S, i) -> int:
+    """This tick's counts of channel ``i`` where the ADC found them good, else -1."""
+    return -1 if S.faulty[i] or S.good_count[i] == 0 else S.counts[i]

@@ -20,172 +20,159 @@ not adapt on such a tick (``tick``/``gain``'s ``adapt``): its innovations say no
 sensors' noise, and absorbing them made R_hat grow by 10^3-10^5 on rough roads at 30 m/s
 (``hil alarms``), the estimate then drifting for seconds.
 
-The API is filterpy's split: ``predict`` then ``update`` (the innovation in
-``AkfState.innovation``); ``tick`` is the two in one compiled call (the ECU's per-tick path, the
-same arithmetic), ``gain`` the update's float half for the fixed-point path. The arithmetic is
-in ``firmware.kernels.akf``.
+Compiled (numba) over the state record's ``akf`` fields: ``estimate`` is the float path's
+stage 2 (the force from the measured current, the forces off the model, ``tick``); ``tick``
+predicts and corrects in one call. The arithmetic is ``firmware.kernels.akf``'s, in
+filterpy's split (``predict_ws``, then ``update_ws`` exposing the innovation; ``gain_ws`` the
+update's float half, which the fixed-point path calls, ``firmware.ecu._estimate_fixed``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
 
 import numpy as np
 
 from firmware.kernels import akf as kern
-from firmware.params import AkfParams
-
-
-@dataclass
-class AkfState:
-    x: np.ndarray
-    P: np.ndarray
-    R: np.ndarray
-    r: np.ndarray
-    b_pow: float              # b^(t+1)
-    innovation: np.ndarray
-    hph: np.ndarray               # diag(H P_pred H^T) of the last correction (fault detection)
-    guard_hits: int = 0       # how often the R-hat guard acted
-    r_scale: np.ndarray | None = None   # outer(sqrt(r_floor), sqrt(r_floor)) (the guard's)
-
-
-def init(params: AkfParams) -> AkfState:
-    m = params.H.shape[0]
-    s = np.sqrt(params.r_floor)
-    return AkfState(x=np.zeros(5), P=params.p0.copy(), R=params.r0.copy(), r=np.zeros(m),
-                    b_pow=params.forgetting, innovation=np.zeros(m), hph=np.zeros(m),
-                    r_scale=np.outer(s, s))
-
-
-R_CEILING = kern.R_CEILING   # largest R-hat eigenvalue, in units of the floor
-
-
-def guard_r(R: np.ndarray, floor: np.ndarray,
-            scale: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
-    """Symmetrise R and bound it: in coordinates scaled by sqrt(floor) (so channels of very
-    different units compare), every eigenvalue is clipped into [1, R_CEILING]. The result is
-    positive definite with R >= diag(floor) (to rounding, relative to the ceiling).
-    Non-finite R falls back to diag(floor). ``scale``: outer(sqrt(floor), sqrt(floor)), when
-    the caller has it."""
-    if scale is None:
-        s = np.sqrt(floor)
-        scale = np.outer(s, s)
-    out = np.empty_like(R, dtype=float)
-    hit = kern.guard(np.asarray(R, dtype=float), np.asarray(floor, dtype=float), scale, out)
-    return out, hit
-
-
-def tick(params: AkfParams, st: AkfState, u_tick: float, road_intensity: float, ba: float,
-         defl: float, wa: float, u_now: float, adapt: bool = True, skip: tuple = ()) -> bool:
-    """``predict`` then ``update`` with z = [ba, defl] or [ba, defl, wa] (as many as H has
-    rows), in one compiled call; R_hat adapts only where ``adapt``; the measurements of
-    ``skip`` (indices into z: held values, not measurements) are not used. Returns
-    ``all_finite`` of the new state."""
-    saved = _skip(st, skip)
-    st.b_pow, hit, finite = kern.tick_into(
-        params.phi, params.gamma, params.q_unit, params.H, params.D, st.P, st.R, st.r, st.x,
-        float(u_tick), float(road_intensity), float(ba), float(defl), float(wa), float(u_now),
-        params.r_floor, st.r_scale, st.b_pow, params.forgetting,
-        params.adaptive and adapt and saved is None, params.bias_adaptive, st.innovation,
-        st.hph)
-    if saved is not None:
-        st.R[:, :] = saved
-    st.guard_hits += int(hit)
-    return finite
-
+from firmware.kernels import njit
+from firmware import adc
 
 SKIP_SCALE = 1e12   # a measurement not used: its noise variance this many times R_hat's
 
-
-def _skip(st: AkfState, skip: tuple) -> np.ndarray | None:
-    """R_hat before this tick's measurements of ``skip`` were made useless (their variance
-    times SKIP_SCALE: a gain of ~1e-12 of the usual), or None when there are none."""
-    skip = [j for j in skip if j < st.R.shape[0]]
-    if not skip:
-        return None
-    saved = st.R.copy()
-    for j in skip:
-        st.R[j, j] *= SKIP_SCALE
-    return saved
+MEASURED = (adc.BA, adc.DEFL, adc.WA)     # the filter's z, in its order
 
 
-def predict(params: AkfParams, st: AkfState, u: float, road_intensity: float) -> None:
-    kern.predict_into(params.phi, params.gamma, params.q_unit, st.x, st.P, float(u),
-                  float(road_intensity), True)
+def state_dtype(m: int) -> np.dtype:
+    return np.dtype([
+        ("x", "f8", (5,)), ("P", "f8", (5, 5)), ("R", "f8", (m, m)), ("r", "f8", (m,)),
+        ("b_pow", "f8"),                   # b^(t+1)
+        ("innovation", "f8", (m,)),
+        ("hph", "f8", (m,)),               # diag(H P_pred H^T) of the last correction
+        ("guard_hits", "i8"),              # how often the R-hat guard acted
+        ("R_saved", "f8", (m, m)),         # (R-hat while a held measurement's is scaled)
+        ("ws", kern.workspace_dtype(m)),   # (the tick's intermediates: nothing allocated)
+    ])
 
 
-def predict_cov(params: AkfParams, st: AkfState, road_intensity: float) -> None:
-    """The covariance half of the prediction (the fixed-point path predicts x itself)."""
-    kern.predict_into(params.phi, params.gamma, params.q_unit, st.x, st.P, 0.0,
-                  float(road_intensity), False)
+@njit
+def init(A, S) -> None:
+    """The filter's start (and its restart after a non-finite estimate)."""
+    S.x[:] = 0.0
+    S.P[:, :] = A.p0
+    S.R[:, :] = A.r0
+    S.r[:] = 0.0
+    S.b_pow = A.forgetting
+    S.innovation[:] = 0.0
+    S.hph[:] = 0.0
+    S.guard_hits = 0
 
 
-def update(params: AkfParams, st: AkfState, z: np.ndarray, u: float) -> None:
-    st.b_pow, hit = kern.update_into(
-        params.H, params.D, st.P, st.R, st.r, st.x, np.asarray(z, dtype=float), float(u),
-        params.r_floor, st.r_scale, st.b_pow, params.forgetting, params.adaptive,
-        params.bias_adaptive, st.innovation, st.hph)
-    st.guard_hits += int(hit)
-
-
-def gain(params: AkfParams, st: AkfState, resid: np.ndarray, adapt: bool = True,
-         skip: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
-    """From the residual z - H x_pred - D u: adapt the noise estimates (where ``adapt``),
-    compute the gain K (not using the measurements of ``skip``), update P (Joseph form).
-    Returns (K, eps); the state update is x += K eps."""
-    saved = _skip(st, skip)
-    K, eps, st.P, st.R, st.r, st.b_pow, hit, st.hph = kern.gain(
-        params.H, st.P, st.R, st.r, np.asarray(resid, dtype=float), params.r_floor,
-        st.r_scale, st.b_pow, params.forgetting, params.adaptive and adapt and saved is None,
-        params.bias_adaptive)
-    if saved is not None:
-        st.R = saved
-    st.guard_hits += int(hit)
-    st.innovation = eps
-    return K, eps
-
-
-def finite(st: AkfState) -> bool:
-    """No NaN or inf in the state or the covariance."""
-    return kern.all_finite(st.x, st.P)
-
-
-def bump_force(params: AkfParams, defl: float) -> float:
-    """The bump stops' force on the body at the measured stroke ``defl`` (the wheel takes the
-    opposite, as with the actuator's): 0 inside the clearance and without bump stops."""
-    if params.bump_stiffness == 0.0:
+@njit
+def bump_force(A, defl: float) -> float:
+    """The bump stops' force on the body at the measured stroke (0 inside the clearance)."""
+    if A.bump_stiffness == 0.0:
         return 0.0
-    if defl > params.bump_clearance_m:
-        return -params.bump_stiffness * (defl - params.bump_clearance_m)
-    if defl < -params.bump_clearance_m:
-        return -params.bump_stiffness * (defl + params.bump_clearance_m)
+    if defl > A.bump_clearance_m:
+        return -A.bump_stiffness * (defl - A.bump_clearance_m)
+    if defl < -A.bump_clearance_m:
+        return -A.bump_stiffness * (defl + A.bump_clearance_m)
     return 0.0
 
 
-def tyre_force(params: AkfParams, ms: float, mt: float, ba: float, wa: float) -> float:
-    """The tyre's vertical force measured by the two accelerometers: the static load plus
-    ms BA + mt WA (every other force of the corner is internal to it)."""
-    return params.tyre_load_n + ms * ba + mt * wa
+@njit
+def airborne(A, ms: float, mt: float, ba: float, wa: float) -> bool:
+    """The tyre force measured by the accelerometers is within ``lift_sigmas`` of its noise
+    from zero (or below)."""
+    return A.tyre_load_n + ms * ba + mt * wa < A.lift_sigmas * A.tyre_force_sigma_n
 
 
-def airborne(params: AkfParams, ms: float, mt: float, ba: float, wa: float) -> bool:
-    """The measured tyre force is within ``lift_sigmas`` of its noise from zero (or below):
-    the tyre is off the road, or the linear tyre would pull."""
-    return tyre_force(params, ms, mt, ba, wa) < params.lift_sigmas * params.tyre_force_sigma_n
+@njit
+def _add_outer(P, s2: float, g) -> None:
+    """P += s2 outer(g, g), as numpy computes it (the outer product, then the scale)."""
+    for i in range(5):
+        for j in range(5):
+            P[i, j] = P[i, j] + s2 * (g[i] * g[j])
 
 
-def unknown_forces(params: AkfParams, st: AkfState, lifted: bool, current_unknown: bool,
-                   stroke_unknown: bool) -> None:
-    """Process noise for the forces the model does not know this tick, added to P before the
-    prediction: the airborne tyre's force on the wheel (``lifted``, where the vehicle's tyre
-    can lift off); the actuator's force when its current is beyond the sensor's range or the
-    sensor is faulty (``current_unknown``); the bump stops' force when the stroke is
-    (``stroke_unknown``: beyond the range, the stops push harder than the clipped stroke
-    says)."""
-    if lifted and params.lift_force_sigma_n > 0.0:
-        g, s2 = params.gamma_wheel, params.lift_force_sigma_n ** 2
-        st.P += s2 * np.outer(g, g)
-    s2 = (params.current_force_sigma_n ** 2 if current_unknown else 0.0) + (
-        params.stroke_force_sigma_n ** 2 if stroke_unknown else 0.0)
+@njit
+def unknown_forces(A, S, lifted: bool, current_unknown: bool, stroke_unknown: bool) -> None:
+    """Process noise for the forces the model does not know this tick (the module's doc)."""
+    if lifted and A.lift_force_sigma_n > 0.0:
+        _add_outer(S.P, A.lift_force_var, A.gamma_wheel)
+    s2 = (A.current_force_var if current_unknown else 0.0) + (
+        A.stroke_force_var if stroke_unknown else 0.0)
     if s2 > 0.0:
-        st.P += s2 * np.outer(params.gamma, params.gamma)
+        _add_outer(S.P, s2, A.gamma)
+
+
+@njit
+def off_model(P, S, ba: float, wa: float):
+    """The covariance side of a tick off the linear model (the module's doc): returns (R-hat may adapt, the bits of the measurements held: z indices)."""
+    current_known = adc.measured(S.adc, adc.CUR)
+    stroke_known = adc.measured(S.adc, adc.DEFL)
+    lifted = airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa) and P.akf.lift_force_sigma_n > 0
+    unknown_forces(P.akf, S.akf, lifted, not current_known, not stroke_known)
+    held = 0
+    for j in range(3):
+        if S.adc.faulty[MEASURED[j]]:
+            held |= 1 << j
+    adapt = (current_known and stroke_known and not lifted
+             and adc.measured(S.adc, adc.BA) and adc.measured(S.adc, adc.WA))
+    return adapt, held
+
+
+@njit
+def tick(A, S, u_tick: float, road_intensity: float, ba: float, defl: float, wa: float,
+         u_now: float, adapt: bool, held: int) -> bool:
+    """Predict and correct with z = [ba, defl(, wa)]; R-hat adapts only where ``adapt`` and
+    no measurement is held; a held one's noise is SKIP_SCALE times R-hat's for this tick.
+    Returns whether the new state is finite."""
+    m = S.R.shape[0]
+    skip = held & ((1 << m) - 1)
+    if skip:
+        S.R_saved[:, :] = S.R
+        for j in range(m):
+            if (skip >> j) & 1:
+                S.R[j, j] *= SKIP_SCALE
+    S.b_pow, hit, finite = kern.tick_ws(
+        A.phi, A.gamma, A.q_unit, A.H, A.D, S.P, S.R, S.r, S.x, u_tick, road_intensity, ba,
+        defl, wa, u_now, A.r_floor, A.r_scale, S.b_pow, A.forgetting,
+        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive), S.innovation, S.hph,
+        S.ws)
+    if skip:
+        S.R[:, :] = S.R_saved
+    S.guard_hits += hit
+    return finite
+
+
+@njit
+def estimate(P, S, ba: float, wa: float, defl: float, i_meas: float,
+             road_intensity: float):
+    """The float path's stage 2: the force from the
+    measured current (the direction picks the efficiency), the known force, predict and
+    correct. Returns (force_meas, finite)."""
+    pl = P.plant
+    rel_prev = S.akf.x[0] - S.akf.x[1]
+    g = pl.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / pl.efficiency
+    force_meas = g * pl.force_constant * i_meas
+    known = force_meas + bump_force(P.akf, defl)
+    adapt, held = off_model(P, S, ba, wa)
+    finite = tick(P.akf, S.akf, 0.5 * (S.ctl.force_known_prev + known), road_intensity, ba,
+                  defl, wa, known, adapt, held)
+    S.ctl.force_known_prev = known
+    return force_meas, finite
+
+
+@njit
+def road_per_mps(P, gq: float) -> float:
+    """The filter's road intensity per m/s for the process noise: the grade estimate's G_q
+    once there is one, within [G_q,A / 2, the nominal] (Sage-Husa adaptation of R needs Q
+    about right on smooth roads, where sensor noise matters; a larger Q on rough roads only
+    adds estimation noise: measured on D roads, SWS 0.79 instead of 0.76 in comprehensive
+    mode)."""
+    if P.akf_q_follows_grade and math.isfinite(gq):
+        lo, hi = P.grade.gq_centres[0] * 0.5, P.akf_q_gq_nominal
+        g = lo if lo > gq else gq
+        g = g if g < hi else hi
+        return P.akf.road_intensity_per_mps * g / P.akf_q_gq_nominal
+    return P.akf.road_intensity_per_mps

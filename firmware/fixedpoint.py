@@ -9,11 +9,20 @@ Rules (DESIGN.md section 3): round half away from zero, saturate, never wrap.
   ``s`` in [0, 62] with rounding half away from zero, saturated to int32.
 * every add/sub saturates to int32; sums of products saturate each term, then the total
   (at most a few int32 terms: no int64 overflow).
+
+Compiled (numba): the integer operations run inside the tick and from Python alike (the
+calibration's table builders). ``cm``/``cmi`` are a table constant (a record with ``m`` and
+``frac``) times a signal, from one format to another (C: ``CM``/``AM``). ``round_half_away``
+and ``best_frac`` are the host's: they refuse a NaN or an infinity (the compiled tick's own
+rounding is ``firmware.util.round_half_away``).
 """
 
 from __future__ import annotations
 
 import math
+
+from firmware.kernels import njit
+from firmware.util import round_half_away as _rha
 
 INT32_MAX = 2 ** 31 - 1
 INT32_MIN = -(2 ** 31)
@@ -21,16 +30,18 @@ INT16_MAX = 2 ** 15 - 1
 INT16_MIN = -(2 ** 15)
 MAX_SHIFT = 62
 
-
-def sat32(x: int) -> int:
+@njit
+def sat32(x):
     return INT32_MAX if x > INT32_MAX else INT32_MIN if x < INT32_MIN else x
 
 
-def sat16(x: int) -> int:
+@njit
+def sat16(x):
     return INT16_MAX if x > INT16_MAX else INT16_MIN if x < INT16_MIN else x
 
 
-def rshift_round(p: int, s: int) -> int:
+@njit
+def rshift_round(p, s):
     """p / 2^s rounded half away from zero (p in int64, s in [0, 62])."""
     if s == 0:
         return p
@@ -38,51 +49,82 @@ def rshift_round(p: int, s: int) -> int:
     return (p + half) >> s if p >= 0 else -((half - p) >> s)
 
 
-def mul(a: int, b: int, s: int) -> int:
+@njit
+def mul(a, b, s):
     return sat32(rshift_round(a * b, s))
 
 
-def add(a: int, b: int) -> int:
+@njit
+def add(a, b):
     return sat32(a + b)
 
 
-def sub(a: int, b: int) -> int:
+@njit
+def sub(a, b):
     return sat32(a - b)
 
 
-def neg(a: int) -> int:
+@njit
+def neg(a):
     return sat32(-a)
 
 
-def clamp(x: int, lo: int, hi: int) -> int:
+@njit
+def clamp(x, lo, hi):
     return lo if x < lo else hi if x > hi else x
 
 
-def div_round(a: int, n: int) -> int:
-    """a / n rounded half away from zero, n > 0 (C: integer division truncates toward zero,
-    so the C code adds n/2 to |a| first, exactly as here)."""
+@njit
+def div_round(a, n):
+    """a / n rounded half away from zero, n > 0."""
     q = (abs(a) + n // 2) // n
     return q if a >= 0 else -q
 
 
-def same_sign_or_zero(a: int, b: int) -> bool:
-    """a * b >= 0"""
+@njit
+def same_sign_or_zero(a, b) -> bool:
     return a == 0 or b == 0 or (a > 0) == (b > 0)
+
+
+@njit
+def to_fixed(v: float, frac: int) -> int:
+    """A finite float as a saturated int32 mantissa with ``frac`` fractional bits. Saturated
+    before the conversion to an integer: compiled, a float beyond int64 does not convert
+    (it wrapped to INT32_MIN where Python's integers saturate to INT32_MAX)."""
+    y = v * 2.0 ** frac
+    if y >= INT32_MAX + 0.5:
+        return INT32_MAX
+    if y <= INT32_MIN - 0.5:
+        return INT32_MIN
+    return _rha(y)
+
+
+@njit
+def to_float(m: int, frac: int) -> float:
+    return m * 2.0 ** -frac
+
+
+@njit
+def cm(c, x, f_in, f_out):
+    """The constant c times x, from format f_in to f_out (C: ``CM``)."""
+    return mul(c.m, x, c.frac + f_in - f_out)
+
+
+@njit
+def cmi(c, i, x, f_in, f_out):
+    """The i-th constant of table c times x (C: ``AM``)."""
+    return mul(c.m[i], x, c.frac[i] + f_in - f_out)
+
+
+@njit
+def isfinite(v: float) -> bool:
+    return math.isfinite(v)
 
 
 def round_half_away(x: float) -> int:
     """The project's one rounding rule for floats to integers (DESIGN.md section 3): half away
     from zero. A NaN or an infinity raises ValueError (math.floor)."""
     return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)   # (floor gives an int)
-
-
-def to_fixed(v: float, frac: int) -> int:
-    """A float as a saturated int32 mantissa with ``frac`` fractional bits."""
-    return sat32(round_half_away(v * 2.0 ** frac))
-
-
-def to_float(m: int, frac: int) -> float:
-    return m * 2.0 ** -frac
 
 
 def best_frac(v: float, lo: int = 0, hi: int = 46, headroom_bits: int = 0) -> int:

@@ -11,16 +11,19 @@
   the RMS has fallen below limit * exit ratio and the minimum hold has passed.
 * Faults (from the safety code) force the fail-safe state: no active force (the bridge is
   opened, passive damping remains).
+
+Compiled (numba) over the state record's ``modes`` fields.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
+import numpy as np
+
+from firmware.kernels import njit
 from firmware.params import (GRADE_UNKNOWN, MODE_COMFORT, MODE_COMPREHENSIVE, MODE_ENERGY,
-                             MODE_PASSIVE, MODE_SAFETY, REQ_ACCEPT, REQ_CHOOSE, REQ_REFUSE,
-                             ModeParams)
+                             MODE_PASSIVE, MODE_SAFETY, REQ_ACCEPT, REQ_CHOOSE, REQ_REFUSE)
 
 GRADE_TO_MODE = (MODE_ENERGY, MODE_COMFORT, MODE_SAFETY, MODE_COMPREHENSIVE)
 N_MODES = 5
@@ -36,82 +39,84 @@ EVT_CHOSEN = 4
 EVT_INVALID_REQUEST = 8
 EVT_REQUEST_RATE = 16        # a new request came too soon after the previous one: ignored
 
-
-@dataclass
-class ModeState:
-    user_mode: int
-    active_mode: int
-    recommended: int
-    last_counter: int = -1
-    override: bool = False
-    override_ticks: int = 0
-    reason: int = REASON_NONE
-    events: int = 0
-    refused_mode: int = -1
-    ticks: int = 0               # steps taken
-    last_request_tick: int = -(1 << 30)   # step of the previous new request
-    dtd2_ema: float = 0.0        # tyre-deflection mean square (road-holding check)
+STATE = np.dtype([
+    ("user_mode", "i8"), ("active_mode", "i8"), ("recommended", "i8"),
+    ("last_counter", "i8"), ("override", "u1"), ("override_ticks", "i8"), ("reason", "i8"),
+    ("events", "i8"), ("refused_mode", "i8"),
+    ("ticks", "i8"),                 # steps taken
+    ("last_request_tick", "i8"),     # step of the previous new request
+    ("dtd2_ema", "f8"),              # tyre-deflection mean square (road-holding check)
+])
 
 
-def init(params: ModeParams) -> ModeState:
-    m = params.initial_mode
-    return ModeState(user_mode=m, active_mode=m, recommended=m)
+def init(P, S) -> None:
+    m = P.initial_mode
+    S.user_mode = S.active_mode = S.recommended = m
+    S.last_counter = S.refused_mode = -1
+    S.last_request_tick = -(1 << 30)
 
 
-def road_holding_rms(params: ModeParams, st: ModeState, dtd_est: float) -> float:
+@njit
+def grade_to_mode(grade: int) -> int:
+    return (MODE_ENERGY, MODE_COMFORT, MODE_SAFETY, MODE_COMPREHENSIVE)[grade]
+
+
+@njit
+def road_holding_rms(P, S, dtd_est: float) -> float:
     """The tyre-deflection RMS of the road-holding check: an exponential mean square over
     ``safety_window_ticks``."""
-    alpha = 1.0 / params.safety_window_ticks
-    st.dtd2_ema += alpha * (dtd_est * dtd_est - st.dtd2_ema)
-    return math.sqrt(st.dtd2_ema)
+    alpha = 1.0 / P.safety_window_ticks
+    S.dtd2_ema += alpha * (dtd_est * dtd_est - S.dtd2_ema)
+    return math.sqrt(S.dtd2_ema)
 
 
-def step(params: ModeParams, st: ModeState, grade: int, req_kind: int, req_mode: int,
-         req_counter: int, dtd_rms: float, fault: bool) -> int:
-    st.events = 0
-    st.ticks += 1
+@njit
+def step(P, S, grade: int, req_kind: int, req_mode: int, req_counter: int, dtd_rms: float,
+         fault: bool) -> int:
+    S.events = 0
+    S.ticks += 1
     if grade != GRADE_UNKNOWN:
-        st.recommended = GRADE_TO_MODE[grade]
-    if req_counter != st.last_counter:
-        st.last_counter = req_counter
-        too_soon = (req_kind != 0
-                    and st.ticks - st.last_request_tick < params.request_min_ticks)
+        S.recommended = grade_to_mode(grade)
+    if req_counter != S.last_counter:
+        S.last_counter = req_counter
+        too_soon = req_kind != 0 and S.ticks - S.last_request_tick < P.request_min_ticks
         if req_kind != 0:
-            st.last_request_tick = st.ticks
+            S.last_request_tick = S.ticks
         if too_soon:
-            st.events |= EVT_REQUEST_RATE
+            S.events |= EVT_REQUEST_RATE
         elif req_kind == REQ_ACCEPT:
-            if req_mode == st.recommended:
-                st.user_mode = st.recommended
-                st.events |= EVT_ACCEPTED
+            if req_mode == S.recommended:
+                S.user_mode = S.recommended
+                S.events |= EVT_ACCEPTED
             else:
-                st.events |= EVT_INVALID_REQUEST   # accepting a stale recommendation
+                S.events |= EVT_INVALID_REQUEST   # accepting a stale recommendation
         elif req_kind == REQ_REFUSE:
-            st.refused_mode = st.recommended
-            st.events |= EVT_REFUSED
+            S.refused_mode = S.recommended
+            S.events |= EVT_REFUSED
         elif req_kind == REQ_CHOOSE:
-            if isinstance(req_mode, int) and 0 <= req_mode < N_MODES:
-                st.user_mode = req_mode
-                st.events |= EVT_CHOSEN
+            if 0 <= req_mode < N_MODES:
+                S.user_mode = req_mode
+                S.events |= EVT_CHOSEN
             else:
-                st.events |= EVT_INVALID_REQUEST
+                S.events |= EVT_INVALID_REQUEST
         elif req_kind != 0:
-            st.events |= EVT_INVALID_REQUEST
+            S.events |= EVT_INVALID_REQUEST
     # safety first
-    if st.override:
-        st.override_ticks += 1
-        if (dtd_rms < params.safety_dtd_rms_limit * params.safety_exit_ratio
-                and st.override_ticks >= params.safety_hold_ticks):
-            st.override = False
-    elif dtd_rms > params.safety_dtd_rms_limit:
-        st.override, st.override_ticks = True, 0
+    if S.override:
+        S.override_ticks += 1
+        if (dtd_rms < P.safety_dtd_rms_limit * P.safety_exit_ratio
+                and S.override_ticks >= P.safety_hold_ticks):
+            S.override = False
+    elif dtd_rms > P.safety_dtd_rms_limit:
+        S.override = True
+        S.override_ticks = 0
     if fault:
-        st.reason = REASON_FAULT
-        st.active_mode = MODE_PASSIVE
-    elif st.override:
-        st.reason = REASON_ROAD_HOLDING
-        st.active_mode = MODE_SAFETY
+        S.reason = REASON_FAULT
+        S.active_mode = MODE_PASSIVE
+    elif S.override:
+        S.reason = REASON_ROAD_HOLDING
+        S.active_mode = MODE_SAFETY
     else:
-        st.reason = REASON_NONE
-        st.active_mode = st.user_mode
-    return st.active_mode
+        S.reason = REASON_NONE
+        S.active_mode = S.user_mode
+    return S.active_mode

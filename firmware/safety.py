@@ -6,7 +6,9 @@ push, in one place.
   holds both to the DBC).
 * The fault word (``FAULT_*``, ``fault_names``) and which faults are safety-relevant
   (``SAFETY_RELEVANT``): such a fault opens the bridge in the same tick.
-* ``force_allowed``: the one final gate that decides whether active force is allowed.
+* The final gate (in the tick, ``firmware.ecu._control`` and ``firmware.fx.path.control``):
+  active force only in an active mode (or while a crossfade into passive runs) and never
+  with a safety-relevant fault; otherwise the bridge is opened (passive damping remains).
 * Frame validity, below: CRC-8 CHECKSUM, 4-bit COUNTER, DLC, and receive timeouts with
   hysteresis. Written once, here; the HIL codec reuses it (two copies drift). Pure code: time
   is a tick count.
@@ -27,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from firmware import adc
-from firmware.modes import EVT_INVALID_REQUEST, EVT_REQUEST_RATE
 
 CRC8_POLY = 0x1D
 CRC8_INIT = 0xFF
@@ -91,23 +92,6 @@ SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
 def fault_names(word: int) -> list[str]:
     """The names of the bits set in a fault word (lowest bit first)."""
     return [name for bit, name in sorted(FAULT_NAMES.items()) if word & bit]
-
-
-def request_faults(events: int) -> int:
-    """The fault bits of a tick's driver-request events (firmware.modes.EVT_*)."""
-    out = 0
-    if events & EVT_INVALID_REQUEST:
-        out |= FAULT_INVALID_REQUEST
-    if events & EVT_REQUEST_RATE:
-        out |= FAULT_RATE
-    return out
-
-
-def force_allowed(passive: bool, ramping: bool, fault: bool) -> bool:
-    """The final gate: active force only in an active mode (or while a crossfade into passive
-    runs) and never with a safety-relevant fault; otherwise the bridge is opened (passive
-    damping remains)."""
-    return (not passive or ramping) and not fault
 
 
 # ---------------------------------------------------------------- receive and transmit

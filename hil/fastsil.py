@@ -19,7 +19,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from firmware.tick.layout import view
+from firmware.layout import view
 from hil import secoc
 from hil.kernels import bus as kb
 from hil.kernels import frames as kf

@@ -38,8 +38,8 @@ from firmware import safety
 from firmware.diag import uds
 from firmware.modes import REASON_NONE
 from firmware import params as fp
-from firmware.tick import Ecu
-from firmware.tick.layout import view
+from firmware.ecu import Ecu
+from firmware.layout import view
 from hil import secoc
 from hil.kernels import bus as kb
 from hil.kernels import ecunode as ken
@@ -354,7 +354,7 @@ class EcuNode:
                  fixed_point: bool = False, record: bool = False, key: Optional[bytes] = None):
         self.params, self.codec, self.lockstep = params, codec, lockstep
         dt = params.dt_s
-        # the compiled ECU (firmware.tick), on the fixed-point path with its tables
+        # the compiled ECU (firmware), on the fixed-point path with its tables
         self.state = Ecu(params, build_tables(params) if fixed_point else None, record)
         self.M, self.F, self.fault_bits = codec.bus_tables()
         # the node's state (hil.kernels.ecunode.ECU_NODE) and its receivers: the firmware's
@@ -795,7 +795,7 @@ def warm_up(node, ticks: int = 30) -> None:
     in a process, and Python's first pass through a path is slower; in realtime pacing both
     would be missed deadlines at the start. The plant copy steps with an enabled command; the
     ECU copy gets valid sensor and speed frames and one tick without a sensor frame (its
-    compiled tick, ``firmware.tick``, is one function: the first call loads all of it). The
+    compiled tick, ``firmware``, is one function: the first call loads all of it). The
     node itself is untouched (the same bytes on the bus afterwards)."""
     shared = {id(node.codec): node.codec}
     if hasattr(node, "params"):             # the calibration: the same arrays (and layouts)

@@ -10,8 +10,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calib.ecu_params import build, flatline_ticks
-from firmware import ecu, safety
-from firmware.diag import DiagState, SESSION_EXTENDED, dtc, fdi, uds
+from firmware import safety
+from firmware.diag import SESSION_EXTENDED, dtc, fdi, uds
+from firmware.diag.view import DiagView
+from firmware.ecu import Ecu, Inputs
+from firmware.ecu import init as ecu_init
 from hil import faults, nodes, secoc
 from hil.codec import Codec
 from hil.config import default_vehicle
@@ -178,28 +181,47 @@ def _snap(tick=6):
     return dtc.Snapshot(tick, 2000, 1, 2, 300, 1500, 0xFFFF)
 
 
+class Memory:
+    """A new ECU state's DTC memory: the compiled stage's ``update``/``new_cycle`` on the
+    record, read (and cleared) through the UDS server's view (``diag``)."""
+
+    def __init__(self):
+        self.S = ecu_init(P)
+        self.diag = DiagView(self.S)
+        self.mem = self.diag.dtc
+
+    def update(self, tick, fault_word, snapshot=None):
+        snap = np.array(snapshot if snapshot is not None else _snap(tick), dtype=np.int64)
+        dtc.update(self.S[0]["dtc"], tick, fault_word, 0, 0, snap)
+
+    def new_cycle(self):
+        dtc.new_cycle(self.S[0]["dtc"])
+
+
 def test_status_byte_through_a_fault_a_pass_and_operation_cycles():
-    mem = dtc.DtcMemory()
+    m = Memory()
+    mem = m.mem
     i = dtc.BY_NAME["frame_checksum"]
     e = mem.entries[i]
     assert e.status == dtc.STATUS_AFTER_CLEAR == 0x50
-    dtc.update(mem, 5, 0, 0, 0, _snap)                    # a clean tick completes the test
+    m.update(5, 0)                                        # a clean tick completes the test
     assert e.status == 0x00
-    dtc.update(mem, 6, safety.FAULT_CHECKSUM, 0, 0, _snap)
+    m.update(6, safety.FAULT_CHECKSUM)
     assert e.status == SAFETY_DTC == 0xAF and e.first_tick == 6 and e.occurrences == 1
     assert e.snapshot == _snap()
-    dtc.update(mem, 7, 0, 0, 0, lambda t: pytest.fail("a second snapshot"))
+    m.update(7, 0, _snap(99))                             # (no second snapshot taken)
     assert e.status & dtc.TF                              # one pass is not enough
-    dtc.update(mem, 8, 0, 0, 0, _snap)
+    assert e.snapshot == _snap()
+    m.update(8, 0)
     assert e.status == 0xAE                               # passed: testFailed clears
-    dtc.new_cycle(mem)
+    m.new_cycle()
     assert e.status == dtc.PDTC | dtc.CDTC | dtc.TFSLC | dtc.TNCTOC     # 0x6C
-    dtc.update(mem, 0, 0, 0, 0, _snap)                    # completes, passes: not pending
-    dtc.new_cycle(mem)
+    m.update(0, 0)                                        # completes, passes: not pending
+    m.new_cycle()
     assert e.status == dtc.CDTC | dtc.TFSLC | dtc.TNCTOC and e.aging == 1
     for _ in range(dtc.AGING_CYCLES - 1):
-        dtc.update(mem, 0, 0, 0, 0, _snap)
-        dtc.new_cycle(mem)
+        m.update(0, 0)
+        m.new_cycle()
     assert not e.status & dtc.CDTC                        # aged out
     assert e.status & dtc.TFSLC and e.snapshot is not None
     assert dtc.clear(mem, dtc.DTCS[i].code) and mem.entries[i].status == 0x50
@@ -208,10 +230,10 @@ def test_status_byte_through_a_fault_a_pass_and_operation_cycles():
 
 
 def test_dtc_setting_off_freezes_the_memory():
-    mem = dtc.DtcMemory()
-    mem.setting_on = False
-    dtc.update(mem, 1, safety.FAULT_TIMEOUT, 0, 0, _snap)
-    assert mem.entries[dtc.BY_NAME["frame_timeout"]].status == 0x50
+    m = Memory()
+    m.mem.setting_on = False
+    m.update(1, safety.FAULT_TIMEOUT)
+    assert m.mem.entries[dtc.BY_NAME["frame_timeout"]].status == 0x50
 
 
 def test_every_fault_bit_and_test_has_a_dtc():
@@ -225,12 +247,16 @@ def test_every_fault_bit_and_test_has_a_dtc():
 
 # -- UDS ------------------------------------------------------------------------------------------
 
-def _ds(**kw):
-    ds = DiagState()
-    ds.view = (2, 1, 0, 2000, 300, 1500, 42, 48020)
-    for k, v in kw.items():
-        setattr(ds, k, v)
-    return ds
+def _ds():
+    """A new ECU state's diagnostics as the UDS server sees them, after a tick with these
+    values (mode 2, grade B, speed 2000, BA and DTD RMS, tick 42, 48.02 V)."""
+    m = Memory()
+    last = m.S[0]["last"]
+    for name, v in zip(("mode", "grade", "faults", "speed", "ba_rms_mmps2", "dtd_rms_um",
+                        "tick", "supply_mv"), (2, 1, 0, 2000, 300, 1500, 42, 48020)):
+        last[name] = v
+    m.diag.memory = m
+    return m.diag
 
 
 def test_uds_services():
@@ -248,7 +274,7 @@ def test_uds_services():
     assert h([0x22, 0xF1]) == b"\x7f\x22\x13"
     assert h([0x19, 0x01, 0x08]) == bytes([0x59, 0x01, 0xFF, 0x01, 0, 0])
     assert h([0x19, 0x01, 0x50])[-2:] == len(dtc.DTCS).to_bytes(2, "big")   # none completed
-    dtc.update(ds.dtc, 43, safety.FAULT_COUNTER, 0, 0, ds.snap)
+    ds.memory.update(43, safety.FAULT_COUNTER)
     code = dtc.DTCS[dtc.BY_NAME["frame_counter"]].code.to_bytes(3, "big")
     assert h([0x19, 0x02, 0x08]) == bytes([0x59, 0x02, 0xFF]) + code + b"\xaf"
     r = h([0x19, 0x04, *code, 0x01])
@@ -315,12 +341,12 @@ def test_requests_between_ticks_never_change_the_control(requests):
     """The dispatch never touches the control path: the same inputs give the same outputs
     with requests between the ticks (a reset is the node's to carry out)."""
     rng = np.random.default_rng(3)
-    inputs = [ecu.Inputs(k, *(int(c) for c in rng.integers(1900, 2200, 4)), 2000)
+    inputs = [Inputs(k, *(int(c) for c in rng.integers(1900, 2200, 4)), 2000)
               for k in range(60)]
-    a, b = ecu.init(P), ecu.init(P)
+    a, b = Ecu(P), Ecu(P)
     for k, inp in enumerate(inputs):
-        a, out_a = ecu.step(a, inp)
-        b, out_b = ecu.step(b, inp)
+        out_a = a.step(inp)
+        out_b = b.step(inp)
         if k < len(requests):
             _check_response(requests[k], uds.handle(b.diag, P, k, requests[k]))
         assert out_a == out_b

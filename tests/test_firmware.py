@@ -1,18 +1,27 @@
-"""Unit tests of the firmware parts: ADC plausibility, the mode state machine, the actuator
-stage, PID and BP-PID."""
+"""Unit tests of the firmware's compiled stages (called from Python on the state record's
+sub-records): ADC plausibility, the mode state machine, the actuator stage, PID and BP-PID."""
 
 import dataclasses
 
 import numpy as np
 import pytest
 
-from firmware import actuator, adc, ecu, modes
+from firmware import actuator, adc, control, modes
 from firmware import params as fp
-from firmware.control import bppid, pid
+from firmware.ecu import Ecu, Inputs, _counts
+from firmware.ecu import init as ecu_init
+from firmware.layout import params_record
 from hil.config import default_vehicle
 from calib.ecu_params import build
 
 P = build(default_vehicle())
+
+
+def records(p=P):
+    """The calibration's record and a new ECU state record, as elements (np.void: numba
+    takes them by reference, so a stage writes its state through)."""
+    rec = params_record(p)
+    return rec[0], ecu_init(p, rec)[0]
 
 
 # -- ADC ---------------------------------------------------------------------------------------
@@ -24,63 +33,63 @@ def raw(**over):
     return tuple(mid[name] for name in adc.CHANNELS)
 
 
-def sample(st, counts):
-    """adc.sample with the SI values by channel name."""
-    values, faults = adc.sample(P.adc, st, counts)
-    return dict(zip(adc.CHANNELS, values)), faults
+def sample(S, counts, explained=0):
+    """adc.sample on the state's ADC (the inputs as the ECU takes them: -1 where a value is
+    no count) with the SI values by channel name."""
+    c = np.array([_counts(v) for v in counts], dtype=np.int64)
+    faults = adc.sample(PR["adc"], S["adc"], c, explained)
+    return dict(zip(adc.CHANNELS, S["adc"]["value"].tolist())), faults
+
+
+PR, _ = records()
 
 
 def test_adc_conversion_and_plausibility():
-    st = adc.AdcState()
-    v, faults = sample(st, raw())
+    _, S = records()
+    v, faults = sample(S, raw())
     assert faults == 0
     ch = P.adc.body_accel
     assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)
     for bad in (-1, ch.full_scale + 1, float("nan"), None, 12.5, True):
-        st = adc.AdcState()
-        sample(st, raw())
-        v, faults = sample(st, raw(body_accel=bad))
+        _, S = records()
+        sample(S, raw())
+        v, faults = sample(S, raw(body_accel=bad))
         assert faults == adc.FAULT_BIT["body_accel"], bad
         assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)  # held
 
 
-def test_adc_tuple_path_refuses_a_wrong_number_of_channels():
-    """adc.sample takes one count per channel, in CHANNELS order."""
-    with pytest.raises(ValueError):
-        adc.sample(P.adc, adc.AdcState(), (1, 2, 3, 4))
-
-
 def test_adc_stuck_at_rail_and_recovery_hysteresis():
-    st = adc.AdcState()
+    _, S = records()
     faults = 0
     for k in range(P.adc.rail_ticks):
-        _, faults = sample(st, raw(wheel_accel=P.adc.wheel_accel.full_scale))
+        _, faults = sample(S, raw(wheel_accel=P.adc.wheel_accel.full_scale))
         assert bool(faults) == (k + 1 >= P.adc.rail_ticks)
     for k in range(P.adc.recover_ticks):
-        _, faults = sample(st, raw())
+        _, faults = sample(S, raw())
         assert bool(faults) == (k + 1 < P.adc.recover_ticks)
     # speed at 0 counts is a car standing still, not a fault
-    st = adc.AdcState()
+    _, S = records()
     for _ in range(3 * P.adc.rail_ticks):
-        _, faults = sample(st, raw(speed=0))
+        _, faults = sample(S, raw(speed=0))
     assert faults == 0
 
 
 def test_adc_explained_rail_is_clipped_not_faulty():
     """A rail the ECU explains is a sample beyond the range (not measured), not a fault; the
     same rail is a fault rail_ticks samples after the explanation ends."""
-    st, bit = adc.AdcState(), adc.FAULT_BIT["motor_current"]
+    _, S = records()
+    bit, cur = adc.FAULT_BIT["motor_current"], adc.CHANNELS.index("motor_current")
     top = raw(motor_current=P.adc.motor_current.full_scale)
     for _ in range(5 * P.adc.rail_ticks):
-        _, faults = adc.sample(P.adc, st, top, explained=bit)
-        assert faults == 0 and not adc.measured(st, ("motor_current",))
+        _, faults = sample(S, top, explained=bit)
+        assert faults == 0 and not adc.measured(S["adc"], cur)
     # another channel's explanation does not cover it
     for k in range(P.adc.rail_ticks):
-        _, faults = adc.sample(P.adc, st, top, explained=adc.FAULT_BIT["susp_defl"])
+        _, faults = sample(S, top, explained=adc.FAULT_BIT["susp_defl"])
         assert faults == (bit if k + 1 >= P.adc.rail_ticks else 0)
-    st = adc.AdcState()
-    adc.sample(P.adc, st, raw())
-    assert adc.measured(st, ("motor_current",))
+    _, S = records()
+    sample(S, raw())
+    assert adc.measured(S["adc"], cur)
 
 
 def test_ecu_explains_a_current_rail_by_the_estimated_velocity():
@@ -97,12 +106,11 @@ def test_ecu_explains_a_current_rail_by_the_estimated_velocity():
     bit = adc.FAULT_BIT["motor_current"]
     rail = P.adc.motor_current.full_scale
     for v_rel, expect_fault in ((1.1 * v_emf, False), (0.5 * P.adc.current_rail_mps, True)):
-        st = ecu.init(P)
+        e = Ecu(P)
         worst = 0
         for k in range(5 * P.adc.rail_ticks):
-            st.akf.x[0], st.akf.x[1] = v_rel, 0.0       # the estimate the ECU starts the tick with
-            st, out = ecu.step(st, ecu.Inputs(k, 2048, 2048, 2048, rail, 2000))
-            worst |= out.faults
+            e.x[0], e.x[1] = v_rel, 0.0       # the estimate the ECU starts the tick with
+            worst |= e.step(Inputs(k, 2048, 2048, 2048, rail, 2000)).faults
         assert bool(worst & bit) == expect_fault, v_rel
 
 
@@ -112,11 +120,25 @@ def test_ecu_explains_a_current_rail_by_the_estimated_velocity():
 MP = dataclasses.replace(P.modes, request_min_ticks=0)
 
 
+class ModeState:
+    """The mode stage's calibration and state records; the state's fields as attributes."""
+
+    def __init__(self, mp):
+        rec, state = records(dataclasses.replace(P, modes=mp))
+        self._p, self._s = rec["modes"], state["modes"]
+
+    def step(self, grade, kind, mode, counter, dtd=0.0, fault=False):
+        return modes.step(self._p, self._s, grade, kind, mode, counter, dtd, fault)
+
+    def __getattr__(self, name):
+        return int(self._s[name])
+
+
 def run_modes(events, st=None, dtd=0.0, fault=False):
-    st = st or modes.init(MP)
+    st = st or ModeState(MP)
     out = []
     for grade, kind, mode, counter in events:
-        out.append(modes.step(MP, st, grade, kind, mode, counter, dtd, fault))
+        out.append(st.step(grade, kind, mode, counter, dtd, fault))
     return st, out
 
 
@@ -148,8 +170,8 @@ def test_refuse_and_choose():
 def test_request_spam_is_ignored_and_reported():
     mp = P.modes
     assert mp.request_min_ticks > 1
-    st = modes.init(mp)
-    step = lambda kind, mode, counter: modes.step(mp, st, 1, kind, mode, counter, 0.0, False)
+    st = ModeState(mp)
+    step = lambda kind, mode, counter: st.step(1, kind, mode, counter)
     assert step(fp.REQ_CHOOSE, fp.MODE_SAFETY, 1) == fp.MODE_SAFETY
     # a new request every tick, alternating modes: none is acted on, each is reported
     for i in range(2, mp.request_min_ticks // 2):
@@ -191,13 +213,13 @@ def test_fault_forces_failsafe():
 
 
 def test_ecu_opens_the_bridge_on_a_sensor_fault_within_the_tick():
-    st = ecu.init(P)
+    e = Ecu(P)
     ba, wa, defl, cur, _ = raw()
-    inp = ecu.Inputs(0, ba, wa, defl, cur, 2000, fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
+    inp = Inputs(0, ba, wa, defl, cur, 2000, fp.REQ_CHOOSE, fp.MODE_SAFETY, 1)
     for k in range(400):
-        st, out = ecu.step(st, inp._replace(tick=k))
+        out = e.step(inp._replace(tick=k))
     assert out.enable and out.active_mode == fp.MODE_SAFETY
-    st, out = ecu.step(st, inp._replace(tick=400, susp_defl=-5))
+    out = e.step(inp._replace(tick=400, susp_defl=-5))
     assert not out.enable and out.duty_q15 == 0 and out.faults & adc.FAULT_BIT["susp_defl"]
     assert out.reason == modes.REASON_FAULT
 
@@ -214,11 +236,11 @@ def test_duty_rounding_and_saturation():
 
 def test_current_reference_limits_and_efficiency():
     pl = P.plant
-    big = actuator.current_reference(pl, 1e6, 0.1, True)
+    big = actuator.current_reference(PR["plant"], 1e6, 0.1, True)
     assert big == pytest.approx(actuator.CURRENT_MARGIN * pl.current_limit)
     # motoring needs more current than the ideal, generating less
-    drive = actuator.current_reference(pl, 300.0, 0.1, False)
-    brake = actuator.current_reference(pl, -300.0, 0.1, False)
+    drive = actuator.current_reference(PR["plant"], 300.0, 0.1, False)
+    brake = actuator.current_reference(PR["plant"], -300.0, 0.1, False)
     assert drive == pytest.approx(300.0 / (pl.efficiency * pl.force_constant))
     assert brake == pytest.approx(-300.0 * pl.efficiency / pl.force_constant)
 
@@ -227,16 +249,18 @@ def test_regen_voltage_keeps_power_flowing_into_storage():
     pl = P.plant
     for rel_vel in (0.3, -0.3):
         for i_ref in (-50.0, -5.0, 0.0, 5.0, 50.0):
-            st = actuator.ActuatorState()
+            _, S = records()
+            st = S["ctl"]["actuator"]
             i_meas = 0.0
             for _ in range(20):   # closed loop on a simple winding model
-                actuator.step(P.actuator, pl, st, i_ref, i_meas, rel_vel, True, 0.5)
+                actuator.step(PR["actuator"], PR["plant"], st, i_ref, i_meas, rel_vel, True,
+                              0.5, 0.0, P.dt_s)
                 emf = pl.force_constant * rel_vel
-                lo, hi = sorted((0.5 * st.emf, st.emf))
-                assert lo - 2e-3 <= st.voltage <= hi + 2e-3     # quantised duty
+                lo, hi = sorted((0.5 * st["emf"], st["emf"]))
+                assert lo - 2e-3 <= st["voltage"] <= hi + 2e-3     # quantised duty
                 i_meas = (P.actuator.current_a * i_meas
-                          + P.actuator.current_b * (st.voltage - emf))
-                assert st.voltage * i_meas <= 1e-9              # power into the storage
+                          + P.actuator.current_b * (st["voltage"] - emf))
+                assert st["voltage"] * i_meas <= 1e-9              # power into the storage
 
 
 # -- PID / BP-PID ------------------------------------------------------------------------------
@@ -244,10 +268,10 @@ def test_regen_voltage_keeps_power_flowing_into_storage():
 def test_incremental_pid_equals_positional_without_leak():
     rng = np.random.default_rng(0)
     e = rng.normal(0, 1, 500)
-    st = pid.PidState()
+    st = records()[1]["ctl"]["pid"]
     kp, ki, kd, dt = 3.0, 40.0, 0.01, 0.001
     for k in range(500):
-        u = pid.step(st, e[k], kp, ki, kd, 1.0, dt, 1e9)
+        u = control.pid_step(st, e[k], kp, ki, kd, 1.0, dt, 1e9)
     e_prev = e[498]
     positional = kp * e[499] + ki * dt * e.sum() + kd * (e[499] - e_prev) / dt
     assert u == pytest.approx(positional, rel=1e-9)
@@ -255,19 +279,19 @@ def test_incremental_pid_equals_positional_without_leak():
 
 def test_bppid_gains_stay_in_range_and_learn_deterministically():
     def run():
-        st = bppid.init(P.control)
+        st = records()[1]["ctl"]["bppid"]
         rng = np.random.default_rng(3)
         gains = []
         for _ in range(3000):
-            bppid.step(P.control, st, rng.normal(0, 0.6), 0.001)
-            gains.append(st.gains.copy())
+            control.bppid_step(PR["control"], st, rng.normal(0, 0.6), 0.001)
+            gains.append(st["gains"].copy())
         return st, np.array(gains)
 
     a, ga = run()
     b, gb = run()
     assert np.array_equal(ga, gb)
     assert np.all(ga > 0) and np.all(ga < P.control.bp_scale)
-    assert not np.allclose(a.w_o, P.control.bp_w_out)   # it learned
+    assert not np.allclose(a["w_o"], P.control.bp_w_out)   # it learned
     # learning lowers the BA error: after its first transient (K_i dips in the first few
     # hundred ticks) the integral (skyhook) gain grows. (Its end against its start depended
     # on where in its range the design puts the start: 92 % of it on the default car.)
@@ -285,9 +309,10 @@ def test_bppid_turns_no_body_motion_into_a_static_force():
     t = np.arange(60_000) * dt
     ba = 0.6 * np.sin(2 * np.pi * 1.2 * t) + np.random.default_rng(5).normal(0, 0.05, len(t))
 
-    def force(p):
-        st = bppid.init(p)
-        u = np.array([bppid.step(p, st, a, dt) for a in ba])[20_000:]
+    def force(c):
+        rec, state = records(dataclasses.replace(P, control=c))
+        st = state["ctl"]["bppid"]
+        u = np.array([control.bppid_step(rec["control"], st, a, dt) for a in ba])[20_000:]
         return abs(u.mean()) / np.sqrt(np.mean(u ** 2))
 
     assert P.control.bp_gain_alpha < 0.01
@@ -309,14 +334,13 @@ def test_bppid_derivatives_errata_13():
 
 def test_ecu_is_deterministic():
     def run():
-        st = ecu.init(P)
+        e = Ecu(P)
         rng = np.random.default_rng(9)
         outs = []
         for k in range(2000):
             r = raw(body_accel=int(2048 + rng.integers(-30, 30)), wheel_accel=int(2048 + rng.integers(-100, 100)),
                     susp_defl=int(2048 + rng.integers(-50, 50)), speed=2000)
-            st, o = ecu.step(st, ecu.Inputs(k, *r, fp.REQ_CHOOSE, fp.MODE_COMFORT, 1))
-            outs.append(o)
+            outs.append(e.step(Inputs(k, *r, fp.REQ_CHOOSE, fp.MODE_COMFORT, 1)))
         return outs
 
     assert run() == run()
@@ -326,10 +350,11 @@ def test_paper_table2_rule():
     from firmware.grade import paper_rule
 
     g = P.grade
-    assert paper_rule(0.5 * g.dtd1, 0.5 * g.ba1, g) == 0          # A: energy feedback
-    assert paper_rule(0.5 * g.dtd1, 1.0 * g.ba1, g) == 1          # B: BA >= threshold
-    assert paper_rule(1.0 * g.dtd1, g.ba2, g) == 2                # C: DTD >= threshold, BA <= ba2
-    assert paper_rule(2.0 * g.dtd1, 1.01 * g.ba2, g) == 3         # D
+    G = PR["grade"]
+    assert paper_rule(G, 0.5 * g.dtd1, 0.5 * g.ba1) == 0          # A: energy feedback
+    assert paper_rule(G, 0.5 * g.dtd1, 1.0 * g.ba1) == 1          # B: BA >= threshold
+    assert paper_rule(G, 1.0 * g.dtd1, g.ba2) == 2                # C: DTD >= threshold, BA <= ba2
+    assert paper_rule(G, 2.0 * g.dtd1, 1.01 * g.ba2) == 3         # D
     assert g.ba1 < g.ba2                                          # B@10 below C@30, from the model
 
 

@@ -1,4 +1,4 @@
-"""The compiled tick (firmware.tick) under faults of every kind its inputs can carry: the
+"""The compiled tick (firmware) under faults of every kind its inputs can carry: the
 faulted drives of ``tests/golden/faulted.py`` against their pinned digests (every output,
 the fixed-point hand-over, the DTC memory, UDS answers; pinned from the Python ECU the
 compiled tick replaced, which gave the same digests), interpreted against compiled; and the
@@ -17,9 +17,9 @@ from calib.ecu_params import build
 from calib.fx_tables import build_tables
 from firmware.diag import uds
 from firmware.ecu import Inputs
-from firmware.tick import Ecu
-from firmware.tick import ecu as tick_ecu
-from firmware.tick.layout import params_record
+from firmware.ecu import Ecu
+from firmware import ecu as tick_ecu
+from firmware.layout import params_record
 from hil.config import default_vehicle
 from tests.golden import faulted
 
@@ -127,8 +127,8 @@ from hil import sil
 from hil.config import default_vehicle
 from calib.fx_tables import build_tables
 from firmware.ecu import Inputs
-from firmware.tick import Ecu
-from firmware.tick import ecu as te
+from firmware.ecu import Ecu
+from firmware import ecu as te
 
 @njit
 def run(P, T, S, I, O, n):

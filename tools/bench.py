@@ -65,12 +65,12 @@ def cpu_model() -> str:
 
 
 def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
-    """Wall time of every ECU step (``firmware.tick.Ecu.step``: the compiled tick and its
+    """Wall time of every ECU step (``firmware.ecu.Ecu.step``: the compiled tick and its
     call from Python) over the inputs a SIL run (comfort-heavy auto route) gave its ECU,
     replayed into a fresh ECU from the run's hashed rows."""
     from calib.fx_tables import build_tables
     from firmware.ecu import Inputs
-    from firmware.tick import Ecu
+    from firmware.ecu import Ecu
     from hil import sil
     from hil.config import default_vehicle
     from hil.nodes import _HASHED
@@ -186,7 +186,7 @@ def c_core_tick_us(duration_s: float, repeats: int, tmp: Path) -> dict:
 # one entry (cProfile does not see inside it)
 STAGES = (
     ("sil_loop", ("hil/kernels/silloop.py",)),               # the compiled loop (opaque)
-    ("ecu_tick", ("firmware/tick/", "firmware/kernels/")),   # the compiled tick (opaque)
+    ("ecu_tick", ("firmware/", "firmware/kernels/")),   # the compiled tick (opaque)
     ("frames", ("hil/codec.py", "firmware/safety.py")),
     ("ecu_python", ("firmware/",)),                          # firmware Python on the path
     ("plant", ("hil/plant.py", "hil/kernels/plant.py")),

@@ -1,7 +1,7 @@
 """Compile the bench's numba code into its cache before a suite or a run needs it
 (``make jit``; ``make test`` and ``make run`` start with it).
 
-The compiled tick (``firmware.tick``) takes most of a minute to compile on these machines
+The compiled tick (``firmware``) takes most of a minute to compile on these machines
 (the float and fixed-point variants, each with every stage inlined), and loads from numba's
 cache in tens of milliseconds after that (``calib.jitcache`` keys the cache by the compiled
 sources). Without this step every process that starts cold compiles it itself: the two test

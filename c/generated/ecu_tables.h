@@ -391,7 +391,7 @@ extern const uint8_t FDI_NIS_VERDICTS[3];
 #define AKF_Q_GQ_NOMINAL_Q31 ((int32_t)1125899907)
 #define AKF_Q_GQ_NOMINAL_Q31_FRAC 42
 
-/* fixed-point control path (firmware/fx, firmware/control/fx, c/ecu_fx.c) */
+/* fixed-point control path (firmware/fx, c/ecu_fx.c) */
 #define FX_F_ACC 20
 #define FX_F_VEL 24
 #define FX_F_POS 28

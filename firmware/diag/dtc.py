@@ -20,11 +20,14 @@ it stands for the ECU's non-volatile memory.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
+
+import numpy as np
 
 from firmware import adc, safety
 from firmware.diag import fdi
+from firmware.kernels import njit
 
 TF, TFTOC, PDTC, CDTC, TNCSLC, TFSLC, TNCTOC, WIR = (1 << i for i in range(8))
 AVAILABILITY_MASK = 0xFF                 # every bit is supported
@@ -142,105 +145,131 @@ class DtcEntry:
     first_tick: int = -1          # tick of the first failure this cycle (detection time)
 
 
-@dataclass
-class DtcMemory:
-    entries: list = field(default_factory=lambda: [DtcEntry() for _ in DTCS])
-    setting_on: bool = True       # 0x85 ControlDTCSetting
-    cycle: int = 0
-    quiet: bool = True            # every entry at rest (no failure this cycle): fast path
-    tnc_done: bool = False        # no not-completed bit left to clear (fast path)
+N = len(DTCS)
+SOURCE = np.array([d.source for d in DTCS], dtype=np.int64)
+BIT = np.array([d.bit for d in DTCS], dtype=np.int64)
+SAFETY = np.array([d.safety for d in DTCS], dtype=np.int64)
+# the snapshot (record 1): firmware.diag.dtc.Snapshot's fields, in its order
+SNAPSHOT = ("tick", "speed_cmps", "grade", "mode", "ba_rms_mmps2", "dtd_rms_um", "supply_mv")
+
+STATE = np.dtype([
+    ("status", "i8", (N,)), ("fdc", "i8", (N,)),
+    ("passes", "i8", (N,)),            # passed reports in a row
+    ("occurrences", "i8", (N,)),       # operation cycles with a failure since the last clear
+    ("aging", "i8", (N,)),             # operation cycles passed without failure since then
+    ("has_snapshot", "u1", (N,)), ("snapshot", "i8", (N, len(SNAPSHOT))),
+    ("first_tick", "i8", (N,)),        # tick of the first failure this cycle
+    ("setting_on", "u1"),              # 0x85 ControlDTCSetting
+    ("cycle", "i8"),
+    ("quiet", "u1"),                   # every entry at rest (no failure this cycle)
+    ("tnc_done", "u1"),                # no not-completed bit left to clear
+])
 
 
-def update(mem: DtcMemory, tick: int, fault_word: int, test_failed: int,
-           test_completed: int, snapshot) -> None:
-    """One tick of reports: fault-word bits fail their DTCs (a clear bit is a pass: the frame
-    and ADC checks run every tick); fdi tests report through ``test_failed``/``completed``.
-    ``snapshot(tick)`` builds the freeze frame when one is needed."""
-    if not mem.setting_on:
+def init(S) -> None:
+    S.setting_on = S.quiet = True
+    clear_entries(S, np.arange(N))
+
+
+def clear_entries(S, idx) -> None:
+    for i in idx:
+        S.status[i], S.fdc[i], S.first_tick[i] = STATUS_AFTER_CLEAR, FDC_MIN, -1
+        S.passes[i] = S.occurrences[i] = S.aging[i] = S.has_snapshot[i] = 0
+        S.snapshot[i, :] = 0
+    S.quiet, S.tnc_done = True, False
+
+
+@njit
+def update(S, tick: int, fault_word: int, test_failed: int, test_completed: int,
+           snapshot) -> None:
+    """One tick of reports (``firmware.diag.dtc.update``); ``snapshot``: the freeze frame a
+    first failure takes (SNAPSHOT's fields)."""
+    if not S.setting_on:
         return
-    if mem.quiet and not fault_word and not test_failed:
-        if not mem.tnc_done:
-            _complete_quiet(mem, test_completed)
+    if S.quiet and not fault_word and not test_failed:
+        if not S.tnc_done:
+            _complete_quiet(S, test_completed)
         return
     any_active = False
-    for i, d in enumerate(DTCS):
-        e = mem.entries[i]
-        if d.source == SRC_FAULT:
-            fail, done = bool(fault_word & d.bit), True
+    for i in range(N):
+        if SOURCE[i] == SRC_FAULT:
+            fail, done = (fault_word & BIT[i]) != 0, True
         else:
-            fail, done = bool(test_failed >> d.bit & 1), bool(test_completed >> d.bit & 1)
+            fail, done = (test_failed >> BIT[i]) & 1 != 0, (test_completed >> BIT[i]) & 1 != 0
         if fail:
-            _failed(e, d, tick, snapshot)
+            _failed(S, i, tick, snapshot)
         elif done:
-            _passed(e)
-        if e.status & (TF | TFTOC) or e.fdc > FDC_MIN:
+            _passed(S, i)
+        if S.status[i] & (TF | TFTOC) or S.fdc[i] > FDC_MIN:
             any_active = True
-    mem.quiet = not any_active
+    S.quiet = not any_active
 
 
-def _complete_quiet(mem: DtcMemory, completed: int) -> None:
-    """Passed reports while nothing fails: only the not-completed bits change (the fault-word
-    DTCs completed with their first tick)."""
+@njit
+def _complete_quiet(S, completed: int) -> None:
     left = False
-    for i, d in enumerate(DTCS):
-        e = mem.entries[i]
-        if e.status & (TNCSLC | TNCTOC):
-            if d.source == SRC_FAULT or completed >> d.bit & 1:
-                e.status &= ~(TNCSLC | TNCTOC)
+    for i in range(N):
+        if S.status[i] & (TNCSLC | TNCTOC):
+            if SOURCE[i] == SRC_FAULT or (completed >> BIT[i]) & 1:
+                S.status[i] &= ~(TNCSLC | TNCTOC)
             else:
                 left = True
-    mem.tnc_done = not left
+    S.tnc_done = not left
 
 
-def _failed(e: DtcEntry, d: Dtc, tick: int, snapshot) -> None:
-    e.passes = 0
-    e.fdc = min(FDC_MAX, e.fdc + STEP_UP)
-    e.status &= ~(TNCSLC | TNCTOC)
-    if e.fdc >= FDC_MAX and not e.status & TF:
-        first_this_cycle = not e.status & TFTOC
-        e.status |= TF | TFTOC | PDTC | CDTC | TFSLC
-        if d.safety:
-            e.status |= WIR
+@njit
+def _failed(S, i: int, tick: int, snapshot) -> None:
+    S.passes[i] = 0
+    S.fdc[i] = min(FDC_MAX, S.fdc[i] + STEP_UP)
+    S.status[i] &= ~(TNCSLC | TNCTOC)
+    if S.fdc[i] >= FDC_MAX and not S.status[i] & TF:
+        first_this_cycle = not S.status[i] & TFTOC
+        S.status[i] |= TF | TFTOC | PDTC | CDTC | TFSLC
+        if SAFETY[i]:
+            S.status[i] |= WIR
         if first_this_cycle:
-            e.occurrences = min(MAX_OCCURRENCES, e.occurrences + 1)
-            e.aging = 0
-            e.first_tick = tick
-        if e.snapshot is None:
-            e.snapshot = snapshot(tick)
+            S.occurrences[i] = min(MAX_OCCURRENCES, S.occurrences[i] + 1)
+            S.aging[i] = 0
+            S.first_tick[i] = tick
+        if not S.has_snapshot[i]:
+            S.has_snapshot[i] = True
+            S.snapshot[i, :] = snapshot
 
 
-def _passed(e: DtcEntry) -> None:
-    e.status &= ~(TNCSLC | TNCTOC)
-    e.passes += 1
-    e.fdc = max(FDC_MIN, e.fdc - (FDC_MAX - FDC_MIN) // PASS_REPORTS)
-    if e.passes >= PASS_REPORTS:
-        e.fdc = FDC_MIN
-        e.status &= ~TF
-
-
-def new_cycle(mem: DtcMemory) -> None:
-    """A new operation cycle (ECU reset or power-up): pending clears where the last cycle
-    completed without failure, confirmed DTCs age, the this-cycle bits start again."""
-    mem.cycle += 1
-    for e in mem.entries:
-        failed = bool(e.status & TFTOC)
-        completed = not e.status & TNCTOC
+@njit
+def new_cycle(S) -> None:
+    """A new operation cycle (``firmware.diag.dtc.new_cycle``): pending clears where the last
+    cycle completed without failure, confirmed DTCs age, the this-cycle bits start again."""
+    S.cycle += 1
+    for i in range(N):
+        failed = (S.status[i] & TFTOC) != 0
+        completed = not S.status[i] & TNCTOC
         if completed and not failed:
-            e.status &= ~PDTC
-            if e.status & CDTC:
-                e.aging += 1
-                if e.aging >= AGING_CYCLES:
-                    e.status &= ~(CDTC | WIR)
-                    e.aging = 0
-        e.status &= ~(TFTOC | WIR | TF)
-        e.status |= TNCTOC
-        e.fdc, e.passes, e.first_tick = FDC_MIN, 0, -1
-    mem.quiet, mem.tnc_done = True, False
+            S.status[i] &= ~PDTC
+            if S.status[i] & CDTC:
+                S.aging[i] += 1
+                if S.aging[i] >= AGING_CYCLES:
+                    S.status[i] &= ~(CDTC | WIR)
+                    S.aging[i] = 0
+        S.status[i] &= ~(TFTOC | WIR | TF)
+        S.status[i] |= TNCTOC
+        S.fdc[i], S.passes[i], S.first_tick[i] = FDC_MIN, 0, -1
+    S.quiet, S.tnc_done = True, False
 
 
-def clear(mem: DtcMemory, group: int) -> bool:
-    """ClearDiagnosticInformation: 0xFFFFFF every DTC, else one DTC code. False: no such
-    group."""
+@njit
+def _passed(S, i: int) -> None:
+    S.status[i] &= ~(TNCSLC | TNCTOC)
+    S.passes[i] += 1
+    S.fdc[i] = max(FDC_MIN, S.fdc[i] - (FDC_MAX - FDC_MIN) // PASS_REPORTS)
+    if S.passes[i] >= PASS_REPORTS:
+        S.fdc[i] = FDC_MIN
+        S.status[i] &= ~TF
+
+
+def clear(mem, group: int) -> bool:
+    """ClearDiagnosticInformation on the memory's view (``firmware.diag.view.MemoryView``,
+    between ticks): 0xFFFFFF every DTC, else one DTC code. False: no such group."""
     if group == 0xFFFFFF:
         idx = range(len(DTCS))
     elif group in BY_CODE:
@@ -253,5 +282,5 @@ def clear(mem: DtcMemory, group: int) -> bool:
     return True
 
 
-def status_of(mem: DtcMemory, i: int) -> int:
+def status_of(mem, i: int) -> int:
     return mem.entries[i].status & AVAILABILITY_MASK

@@ -48,14 +48,22 @@ Isolation: a flatline names its channel; the actuator test names the actuator (o
 sensor); an innovation alarm names the measurement whose test fired, which is the faulty one
 only for the channels whose fault does not reach the others' innovations first (see
 docs/diagnostics.md for the measured signatures): the DTC says "plausibility" and the channel.
+
+Compiled (numba) over the state record's ``fdi`` fields. Python's ``None`` is a flag there:
+``emf_known`` (the EMF over the step before is known), ``counts`` of -1 (no good sample), the
+commands before the last in a ring of ``OLDER_COMMANDS`` (``n_older`` of them, the newest
+first).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
-from firmware.params import EcuParams
+import numpy as np
+
+from firmware import adc
+from firmware.kernels import njit
+from firmware.util import clamp, pymax, pymin
 
 # test indices (the DTC table in firmware.diag.dtc names them)
 T_NIS_BA, T_NIS_SWS, T_NIS_WA = 0, 1, 2
@@ -68,254 +76,233 @@ OLDER_COMMANDS = 2    # the actuator test also tries the two commands before the
 SUPPLY_TESTS = (1 << T_SUPPLY_LOW) | (1 << T_SUPPLY_HIGH)
 FLAT_TESTS = (T_FLAT_BA, T_FLAT_WA, T_FLAT_SWS, T_FLAT_CUR)
 
-
-@dataclass
-class FdiState:
-    nis: list = field(default_factory=lambda: [1.0, 1.0, 1.0])  # EWMA per measurement
-    flat_last: list = field(default_factory=lambda: [None] * 4)
-    flat_run: list = field(default_factory=lambda: [0] * 4)
-    invalid_until: int = -1        # the model was invalid: innovation tests wait to this tick
-    nis_failed: int = 0            # the innovation tests' last verdict
-    force_prev: float = 0.0
-    supply_v: float = math.nan     # the last measured supply voltage (NaN: none yet) ...
-    supply_failed: int = 0         # ... and the supply tests' verdict on it
-    # the actuator test: the last two ticks' measured current and relative acceleration
-    # (i1, a1: last tick's) and whether the current was measured, the voltage applied over
-    # the last step and the bridge's state, the EMF over the step before (None: unknown),
-    # the EWMA, the tick its excursion above the level began (-1: none) and what it saw
-    # since, the latched failure
-    i1: float = 0.0
-    i2: float = 0.0
-    a1: float = 0.0
-    a2: float = 0.0
-    live1: bool = False
-    live2: bool = False
-    v1: float = 0.0
-    v1_dc: float = 0.0
-    en1: bool = False
-    older: tuple = ()              # the two commands before: (volts, DC volts, enabled)
-    emf: float | None = None
-    emf_weak: bool = False         # ... learnt while no current flowed
-    act: float = 1.0
-    act_onset: int = -1
-    act_counts: tuple = (0, 0)     # lowest and highest current count since the onset
-    act_i_max: float = 0.0         # largest |measured| current since then
-    act_latched: int = 0           # the failed actuator test's bit while latched ...
-    act_until: int = -1            # ... until this tick (the retry)
-    failed: int = 0                # bit per test: failed this tick
-    completed: int = 0             # bit per test: ran to a verdict this tick
+STATE = np.dtype([
+    ("nis", "f8", (3,)),              # EWMA per measurement
+    ("flat_last", "i8", (4,)), ("flat_run", "i8", (4,)),
+    ("invalid_until", "i8"),          # the model was invalid: innovation tests wait to here
+    ("nis_failed", "i8"),             # the innovation tests' last verdict
+    ("force_prev", "f8"),
+    ("supply_v", "f8"),               # the last measured supply voltage (NaN: none yet) ...
+    ("supply_failed", "i8"),          # ... and the supply tests' verdict on it
+    # the actuator test (firmware.diag.fdi.FdiState says what each is)
+    ("i1", "f8"), ("i2", "f8"), ("a1", "f8"), ("a2", "f8"), ("live1", "u1"), ("live2", "u1"),
+    ("v1", "f8"), ("v1_dc", "f8"), ("en1", "u1"),
+    ("older_v", "f8", (OLDER_COMMANDS,)), ("older_dc", "f8", (OLDER_COMMANDS,)),
+    ("older_en", "u1", (OLDER_COMMANDS,)), ("n_older", "i8"),
+    ("emf", "f8"), ("emf_known", "u1"), ("emf_weak", "u1"),
+    ("act", "f8"), ("act_onset", "i8"), ("act_lo", "i8"), ("act_hi", "i8"),
+    ("act_i_max", "f8"), ("act_latched", "i8"), ("act_until", "i8"),
+    ("failed", "i8"),                 # bit per test: failed this tick
+    ("completed", "i8"),              # bit per test: ran to a verdict this tick
+])
 
 
-def step(P: EcuParams, st: FdiState, tick: int, eps, hph, rho: float, force_meas: float,
-         counts: tuple, defl: float, lifted: bool, i_meas: float, a_rel: float,
-         inputs_valid: bool, supply: int | None = None) -> int:
-    """One tick of every test; returns the failed bits (also in ``st.failed``). ``eps``,
-    ``hph``: the filter's innovation and diag(H P H^T); ``counts``: this tick's ADC counts of
-    BA, WA, SWS, current (None when the ADC had none: no flatline verdict); ``defl``: the
-    measured stroke; ``lifted``: the measured tyre force is near zero or below
-    (``firmware.akf.airborne``); ``a_rel``: BA - WA; ``inputs_valid``: no ADC or frame fault
-    this tick (else the innovation tests hold, as where the model does not apply: the filter
-    ran on held values); ``supply``: the supply voltage's counts when a sample arrived this
-    tick."""
-    settled = tick >= P.fdi.settle_ticks
-    if not inputs_valid:
-        st.invalid_until = tick + P.fdi.hold_ticks
-    f0, c0 = _supply(P, st, settled, supply)
-    f2, c2 = _flatline(P, st, settled, counts)
-    # The actuator test's EMF advances with BA - WA: no verdict while either repeats its
-    # count more often than a healthy one does once in 20 times, or an innovation test is
-    # above its level. The innovation tests take their force from the current: they pause
-    # while the actuator test is above its level or failed. (Whichever test rises first holds
-    # the other: a sensor fault is not blamed on the actuator, nor the actuator's on a sensor.)
+def init(S) -> None:
+    S.nis[:] = 1.0
+    S.flat_last[:] = -1
+    S.invalid_until = -1
+    S.supply_v = math.nan
+    S.act = 1.0
+    S.act_onset = -1
+    S.act_until = -1
+
+
+@njit
+def step(P, S, tick: int, eps, hph, rho: float, force_meas: float, counts, defl: float,
+         lifted: bool, i_meas: float, a_rel: float, inputs_valid: bool, supply: int) -> int:
+    """One tick of every test (``firmware.diag.fdi.step``); returns the failed bits.
+    ``counts``: this tick's good counts of BA, WA, SWS, current (-1: none); ``supply``: the
+    supply voltage's counts when a sample arrived this tick (-1: none)."""
     F = P.fdi
+    settled = tick >= F.settle_ticks
+    if not inputs_valid:
+        S.invalid_until = tick + F.hold_ticks
+    f0, c0 = _supply(F, S, settled, supply)
+    f2, c2 = _flatline(P, S, settled, counts)
     model_ok = (inputs_valid and not lifted and abs(defl) <= F.valid_defl_m
-                and st.flat_run[0] < F.act_flat_ticks[0] and st.flat_run[1] < F.act_flat_ticks[1]
-                and not st.nis_failed)
-    f3, c3 = _actuator(P, st, tick, settled, counts[3], i_meas, a_rel, model_ok)
-    if st.act_onset >= 0 or st.act_latched:
-        f1, c1 = st.nis_failed, 0
+                and S.flat_run[0] < F.act_flat_ticks[0] and S.flat_run[1] < F.act_flat_ticks[1]
+                and not S.nis_failed)
+    f3, c3 = _actuator(P, S, tick, settled, counts[3], i_meas, a_rel, model_ok)
+    if S.act_onset >= 0 or S.act_latched:
+        f1, c1 = S.nis_failed, 0
     else:
-        f1, c1 = _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, lifted)
-        st.nis_failed = f1
-    st.failed, st.completed = f0 | f1 | f2 | f3, c0 | c1 | c2 | c3
-    return st.failed
+        f1, c1 = _innovation(P, S, tick, settled, eps, hph, rho, force_meas, defl, lifted)
+        S.nis_failed = f1
+    S.failed, S.completed = f0 | f1 | f2 | f3, c0 | c1 | c2 | c3
+    return S.failed
 
 
-def _innovation(P, st, tick, settled, eps, hph, rho, force_meas, defl, lifted):
-    """The innovation tests: (failed, completed) bits."""
+@njit
+def _innovation(P, S, tick, settled, eps, hph, rho, force_meas, defl, lifted):
     F, A = P.fdi, P.akf
     failed = completed = 0
     if abs(defl) > F.valid_defl_m or lifted:
-        st.invalid_until = tick + F.hold_ticks    # the linear model does not hold here
-    dF = force_meas - st.force_prev
-    band = abs(force_meas) * F.force_band     # (squares as products: the compiled tick's bits)
+        S.invalid_until = tick + F.hold_ticks    # the linear model does not hold here
+    dF = force_meas - S.force_prev
+    band = abs(force_meas) * F.force_band
     var_f = band * band / 12.0 + 0.25 * dF * dF
-    st.force_prev = force_meas
-    if tick <= st.invalid_until:                  # the statistics hold meanwhile
+    S.force_prev = force_meas
+    if tick <= S.invalid_until:                  # the statistics hold meanwhile
         return 0, 0
     lam, clip = F.nis_lambda, F.clip_sq
-    for j in range(len(eps)):
-        d = A.D.item(j)
-        s = hph[j] * rho + A.r0.item(j, j) + d * d * var_f
+    for j in range(eps.shape[0]):
+        d = A.D[j]
+        s = hph[j] * rho + A.r0[j, j] + d * d * var_f
         v = eps[j] * eps[j] / s
         if not math.isfinite(v):
-            continue                              # (a diverged filter is its own fault)
-        st.nis[j] += lam * (min(v, clip) - st.nis[j])
+            continue                             # (a diverged filter is its own fault)
+        S.nis[j] += lam * (pymin(v, clip) - S.nis[j])
         if settled and F.nis_verdicts[j]:
             completed |= 1 << j
-            if st.nis[j] > F.nis_threshold:
+            if S.nis[j] > F.nis_threshold:
                 failed |= 1 << j
     return failed, completed
 
 
-def _flatline(P, st, settled, counts):
-    """The flatline tests: (failed, completed) bits."""
+@njit
+def _flatline(P, S, settled, counts):
     failed = completed = 0
-    for c, t in enumerate(FLAT_TESTS):
+    for c in range(4):
+        t = FLAT_TESTS[c]
         n = P.fdi.flat_ticks[c]
         cnt = counts[c]
-        if not n or cnt is None:
+        if not n or cnt < 0:
             continue
-        if cnt == st.flat_last[c] and 0 < cnt < _full_scale(P, c):   # (rails: the ADC's)
-            st.flat_run[c] += 1
+        if cnt == S.flat_last[c] and 0 < cnt < P.adc.full_scale[c]:   # (rails: the ADC's)
+            S.flat_run[c] += 1
         else:
-            st.flat_run[c] = 1
-            st.flat_last[c] = cnt
+            S.flat_run[c] = 1
+            S.flat_last[c] = cnt
         if settled:
             completed |= 1 << t
-            if st.flat_run[c] >= n:
+            if S.flat_run[c] >= n:
                 failed |= 1 << t
     return failed, completed
 
 
-def _supply(P, st, settled, counts):
-    """The supply-voltage tests on a new sample: (failed, completed). A sample that differs
-    from the last by more than its noise restarts the actuator test (a changed supply, not
-    the actuator, explains a residual that began before it was measured)."""
-    F = P.fdi
-    if counts is None or not 0 < counts < F.supply_full_scale:   # (none, or clipped: the
-        return st.supply_failed, 0                               # last verdict holds)
+@njit
+def _supply(F, S, settled, counts):
+    if not 0 < counts < F.supply_full_scale:           # (none, or clipped: the last
+        return S.supply_failed, 0                      # verdict holds)
     v = F.supply_offset_v + counts * F.supply_lsb_v
-    if not abs(v - st.supply_v) <= F.supply_change_v:            # (NaN: the first sample)
-        st.act, st.act_onset, st.emf = 1.0, -1, None
-    st.supply_v = v
+    if not abs(v - S.supply_v) <= F.supply_change_v:   # (NaN: the first sample)
+        S.act, S.act_onset, S.emf_known = 1.0, -1, False
+    S.supply_v = v
     if not settled:
         return 0, 0
-    st.supply_failed = (1 << T_SUPPLY_LOW if v < F.supply_low_v else 0) | (
-        1 << T_SUPPLY_HIGH if v > F.supply_high_v else 0)
-    return st.supply_failed, SUPPLY_TESTS
+    S.supply_failed = ((1 << T_SUPPLY_LOW) if v < F.supply_low_v else 0) | (
+        (1 << T_SUPPLY_HIGH) if v > F.supply_high_v else 0)
+    return S.supply_failed, SUPPLY_TESTS
 
 
-def _bus_voltage(P, st, regen: bool) -> float:
-    """The DC voltage behind the bridge: the storage element's, or the measured supply
-    (the vehicle's nominal bus voltage until a sample arrived)."""
+@njit
+def bus_voltage(P, S, regen: bool) -> float:
+    """The DC voltage behind the bridge: the storage element's, or the measured supply (the
+    nominal bus voltage until a sample arrived)."""
     if regen:
         return P.plant.storage_voltage
-    return P.plant.bus_voltage if math.isnan(st.supply_v) else st.supply_v
+    return P.plant.bus_voltage if math.isnan(S.supply_v) else S.supply_v
 
 
-def _actuator(P, st, tick, settled, count, i_meas, a_rel, model_ok):
+@njit
+def _winding(P, i1: float, volt: float, emf: float, v_dc: float):
+    """The current one tick after ``i1`` at ``volt`` against ``emf``, and whether the
+    bridge's hardware current limit acted."""
+    ap, lim = P.actuator, P.plant.current_limit
+    i = ap.current_a * i1 + ap.current_b * (volt - emf)
+    if abs(i) <= lim:
+        return i, False
+    v = (math.copysign(lim, i) - ap.current_a * i1) / ap.current_b + emf
+    v = clamp(v, -v_dc, v_dc)
+    return ap.current_a * i1 + ap.current_b * (v - emf), True
+
+
+@njit
+def _actuator(P, S, tick, settled, count, i_meas, a_rel, model_ok):
     """The actuator test over the step that ended now: (failed, completed)."""
     F, ap = P.fdi, P.actuator
     a, b, kdt = ap.current_a, ap.current_b, P.plant.force_constant * P.dt_s
-    live = count is not None and 0 < count < P.adc.motor_current.full_scale
-    # The bridge applied the last command, or, where it came late (realtime pacing: the
-    # plant steps on its clock with the latest valid one, and holds one for up to three
-    # ticks), an older one: where the last leaves an outlier, the two before are tried. A
-    # stuck duty or an open winding is none of them.
-    verdict, v, limited, emf, used = False, math.inf, False, None, None
-    if live and st.live1:
-        emf_adv = None
-        if st.emf is not None and st.live2:
-            emf_adv = st.emf + kdt * 0.25 * (st.a2 + 2.0 * st.a1 + a_rel)
-        da = max(abs(a_rel - st.a1), abs(st.a1 - st.a2))
-        for volt, v_dc, enabled in ((st.v1, st.v1_dc, st.en1), *st.older):
+    live = 0 < count < P.adc.full_scale[adc.CUR]
+    verdict, v, limited = False, math.inf, False
+    emf, emf_ok = 0.0, False
+    used, used_volt, used_en = False, 0.0, False
+    if live and S.live1:
+        emf_adv, adv_ok = 0.0, False
+        if S.emf_known and S.live2:
+            emf_adv, adv_ok = S.emf + kdt * 0.25 * (S.a2 + 2.0 * S.a1 + a_rel), True
+        da = pymax(abs(a_rel - S.a1), abs(S.a1 - S.a2))
+        for k in range(1 + S.n_older):      # the last command, then the ones before
+            if k == 0:
+                volt, v_dc, enabled = S.v1, S.v1_dc, bool(S.en1)
+            else:
+                volt, v_dc, enabled = S.older_v[k - 1], S.older_dc[k - 1], bool(S.older_en[k - 1])
             if not enabled:                  # the bridge was open: no current
-                ip, lim, var = 0.0, False, F.cur_sigma_a ** 2
-            elif emf_adv is not None:
-                ip, lim = _winding(P, st.i1, volt, emf_adv, v_dc)
+                ip, lim, var = 0.0, False, F.cur_var
+            elif adv_ok:
+                ip, lim = _winding(P, S.i1, volt, emf_adv, v_dc)
                 adv = 0.5 * b * kdt * da
                 var = F.act_var + adv * adv
             else:
                 continue
             r = i_meas - ip
             if r * r / var < v:
-                verdict, v, limited, used = True, r * r / var, lim, (volt, enabled)
+                verdict, v, limited = True, r * r / var, lim
+                used, used_volt, used_en = True, volt, enabled
             if v <= F.clip_sq:
                 break
-        emf = emf_adv
-    # the EMF over the step that ended: from the current's response where it follows the
-    # model, else (an outlier, the current limit acting or, unpredicted, the current ending
-    # at it: the bridge lowered its voltage) the advanced estimate, not re-learnt. An EMF
-    # learnt while no current flowed is weak (an open winding shows the applied voltage as
-    # its EMF): where current then starts to flow against it (a winding conducting again),
-    # the outlier is learnt from, not judged. It advances too while this test's failure holds
-    # the bridge open: learnt again after the retry, it took a stuck duty's voltage for EMF.
+        emf, emf_ok = emf_adv, adv_ok
+    # the EMF over the step that ended (firmware.diag.fdi._actuator says when it is learnt)
     at_limit = limited or abs(i_meas) >= P.plant.current_limit - 5.0 * F.cur_sigma_a
-    if used is not None:                     # (the open bridge's: no EMF to see)
-        volt = used[0] if used[1] else None
+    if used:                                 # (the open bridge's: no EMF to see)
+        volt_ok, volt = used_en, used_volt
     else:
-        volt = st.v1 if st.en1 else None
+        volt_ok, volt = bool(S.en1), S.v1
     quiet = F.open_ratio * F.cur_sigma_a
     outlier = verdict and v > F.clip_sq
-    if outlier and st.emf_weak and abs(i_meas) >= quiet:
+    if outlier and S.emf_weak and abs(i_meas) >= quiet:
         verdict = outlier = False
-    if volt is not None and live and st.live1 and not (at_limit or outlier):
-        st.emf = volt - (i_meas - a * st.i1) / b
-        st.emf_weak = abs(i_meas) < quiet and abs(st.i1) < quiet
-    elif live and st.live1 and (volt is not None or (st.act_latched and model_ok)):
-        st.emf = emf                         # (None where there was none to advance)
+    if volt_ok and live and S.live1 and not (at_limit or outlier):
+        S.emf, S.emf_known = volt - (i_meas - a * S.i1) / b, True
+        S.emf_weak = abs(i_meas) < quiet and abs(S.i1) < quiet
+    elif live and S.live1 and (volt_ok or (S.act_latched and model_ok)):
+        S.emf, S.emf_known = emf, emf_ok      # (none where there was none to advance)
     else:
-        st.emf = None
-    st.i2, st.i1, st.a2, st.a1 = st.i1, i_meas, st.a1, a_rel
-    st.live2, st.live1 = st.live1, live
-    if st.act_latched:                       # a failure holds until the retry
-        if tick < st.act_until:
-            return st.act_latched, st.act_latched
-        st.act_latched, st.act, st.act_onset = 0, 1.0, -1
+        S.emf_known = False
+    S.i2, S.i1, S.a2, S.a1 = S.i1, i_meas, S.a1, a_rel
+    S.live2, S.live1 = S.live1, live
+    if S.act_latched:                        # a failure holds until the retry
+        if tick < S.act_until:
+            return S.act_latched, S.act_latched
+        S.act_latched, S.act, S.act_onset = 0, 1.0, -1
     if not (verdict and model_ok and math.isfinite(v)):
         return 0, 0
-    st.act += F.act_lambda * (min(v, F.clip_sq) - st.act)
+    S.act += F.act_lambda * (pymin(v, F.clip_sq) - S.act)
     if not (settled and F.actuator_verdicts):
         return 0, 0
-    if st.act <= F.act_threshold:
-        st.act_onset = -1
+    if S.act <= F.act_threshold:
+        S.act_onset = -1
         return 0, ACT_TESTS
-    if st.act_onset < 0:
-        st.act_onset, st.act_counts, st.act_i_max = tick, (count, count), 0.0
-    lo, hi = st.act_counts
-    st.act_counts = (min(lo, count), max(hi, count))
-    st.act_i_max = max(st.act_i_max, abs(i_meas))
-    if tick - st.act_onset < F.act_confirm_ticks or st.act_counts[0] == st.act_counts[1]:
+    if S.act_onset < 0:
+        S.act_onset, S.act_lo, S.act_hi, S.act_i_max = tick, count, count, 0.0
+    S.act_lo, S.act_hi = pymin(S.act_lo, count), pymax(S.act_hi, count)
+    S.act_i_max = pymax(S.act_i_max, abs(i_meas))
+    if tick - S.act_onset < F.act_confirm_ticks or S.act_lo == S.act_hi:
         return 0, 0           # (not yet; a current sensor that repeats one count: its flatline)
-    sig = F.cur_sigma_a
-    opened = st.act_i_max < F.open_ratio * sig    # (the model expected current: the level)
-    st.act_latched = 1 << (T_ACT_OPEN if opened else T_ACT_STUCK)
-    st.act_until = tick + F.act_retry_ticks
-    return st.act_latched, ACT_TESTS
+    opened = S.act_i_max < F.open_ratio * F.cur_sigma_a
+    S.act_latched = 1 << (T_ACT_OPEN if opened else T_ACT_STUCK)
+    S.act_until = tick + F.act_retry_ticks
+    return S.act_latched, ACT_TESTS
 
 
-def _winding(P, i1: float, volt: float, emf: float, v_dc: float) -> tuple[float, bool]:
-    """The current one tick after ``i1`` at ``volt`` against ``emf``, and whether the
-    bridge's hardware current limit acted (it lowers the voltage it applies, within +-v_dc,
-    so that the current ends at the limit)."""
-    ap, lim = P.actuator, P.plant.current_limit
-    i = ap.current_a * i1 + ap.current_b * (volt - emf)
-    if abs(i) <= lim:
-        return i, False
-    v = (math.copysign(lim, i) - ap.current_a * i1) / ap.current_b + emf
-    v = min(v_dc, max(-v_dc, v))
-    return ap.current_a * i1 + ap.current_b * (v - emf), True
-
-
-def command(P: EcuParams, st: FdiState, duty_q15: int, enable: bool, regen: bool) -> None:
+@njit
+def command(P, S, duty_q15: int, enable: bool, regen: bool) -> None:
     """The tick's command: the voltage the bridge applies over the next step (and the ones
     before, which a late command leaves in force)."""
-    st.older = ((st.v1, st.v1_dc, st.en1), *st.older[:OLDER_COMMANDS - 1])
-    st.en1 = enable
-    st.v1_dc = _bus_voltage(P, st, regen)
-    st.v1 = duty_q15 / 32768.0 * st.v1_dc if enable else 0.0
-
-
-def _full_scale(P: EcuParams, c: int) -> int:
-    return (P.adc.body_accel, P.adc.wheel_accel, P.adc.susp_defl, P.adc.motor_current)[c].full_scale
+    for k in range(OLDER_COMMANDS - 1, 0, -1):
+        S.older_v[k], S.older_dc[k], S.older_en[k] = (S.older_v[k - 1], S.older_dc[k - 1],
+                                                      S.older_en[k - 1])
+    S.older_v[0], S.older_dc[0], S.older_en[0] = S.v1, S.v1_dc, S.en1
+    S.n_older = min(OLDER_COMMANDS, S.n_older + 1)
+    S.en1 = enable
+    S.v1_dc = bus_voltage(P, S, regen)
+    S.v1 = duty_q15 / 32768.0 * S.v1_dc if enable else 0.0

@@ -11,7 +11,8 @@ prescribes: 7F SID NRC.
 
 from __future__ import annotations
 
-from firmware.diag import SESSION_DEFAULT, SESSION_EXTENDED, DiagState, dtc
+from firmware.diag import SESSION_DEFAULT, SESSION_EXTENDED, dtc
+from firmware.diag.view import DiagView
 
 NRC_SERVICE_NOT_SUPPORTED = 0x11
 NRC_SUBFUNCTION_NOT_SUPPORTED = 0x12
@@ -48,7 +49,7 @@ def negative(sid: int, nrc: int) -> bytes:
     return bytes((0x7F, sid, nrc))
 
 
-def handle(ds: DiagState, params, tick: int, req: bytes) -> bytes | None:
+def handle(ds: DiagView, params, tick: int, req: bytes) -> bytes | None:
     """One request -> its response. ``params``: the EcuParams (identification DIDs)."""
     if not req:
         return None
@@ -62,14 +63,14 @@ def handle(ds: DiagState, params, tick: int, req: bytes) -> bytes | None:
     return fn(ds, params, tick, req)
 
 
-def expire(ds: DiagState, tick: int, dt_s: float) -> None:
+def expire(ds: DiagView, tick: int, dt_s: float) -> None:
     """S3: a non-default session ends after ``S3_MS`` without a request."""
     if ds.session != SESSION_DEFAULT and (tick - ds.session_tick) * dt_s * 1000 > S3_MS:
         ds.session = SESSION_DEFAULT
         dtc_setting_on(ds)
 
 
-def dtc_setting_on(ds: DiagState) -> None:
+def dtc_setting_on(ds: DiagView) -> None:
     ds.dtc.setting_on = True
 
 
@@ -134,7 +135,7 @@ def _clear(ds, params, tick, req):
     return bytes((0x54,))
 
 
-def did_data(ds: DiagState, params, did: int) -> bytes | None:
+def did_data(ds: DiagView, params, did: int) -> bytes | None:
     mode, grade, faults, _, ba, dtd, t, supply = ds.view
     if did == DID_SOFTWARE_VERSION:
         return params.software_version.encode("ascii")[:SOFTWARE_VERSION_LEN].ljust(
@@ -180,7 +181,7 @@ def snapshot_bytes(s: dtc.Snapshot) -> bytes:
             + min(s.dtd_rms_um, 0xFFFF).to_bytes(2, "big") + s.supply_mv.to_bytes(2, "big"))
 
 
-def _dtc_record(ds: DiagState, i: int) -> bytes:
+def _dtc_record(ds: DiagView, i: int) -> bytes:
     return dtc.DTCS[i].code.to_bytes(3, "big") + bytes((dtc.status_of(ds.dtc, i),))
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from firmware.fixedpoint import mul
 
 F_ACC = 20
 F_VEL = 24
@@ -107,10 +106,3 @@ class FxTables:
     tanh_lut: tuple           # TANH_N + 1 ints at F_TANH
     ramp_ticks: int
     controllers: tuple
-
-
-
-
-def cm(c: Fx, x: int, f_in: int, f_out: int) -> int:
-    """The constant c times x, from format f_in to f_out (C: ``CM``/``AM``)."""
-    return mul(c.m, x, c.frac + f_in - f_out)

@@ -44,5 +44,5 @@ def load_library(path: str) -> None:
 
 
 # NUMBA_DISABLE_JIT=1: the interpreter runs every kernel, and reads a record's fields as
-# attributes only through numpy's recarray (firmware.tick.layout)
+# attributes only through numpy's recarray (firmware.layout)
 INTERPRETED = bool(numba.config.DISABLE_JIT)

@@ -1,13 +1,13 @@
-"""The adaptive Kalman filter's compiled kernels (``firmware.akf`` is the API): explicit loops
+"""The adaptive Kalman filter's compiled kernels (``firmware.akf`` calls them): explicit loops
 in a fixed order, a Jacobi eigen-decomposition for the R-hat guard, the adjugate (or Gaussian
 elimination) for S^-1; no numpy/LAPACK call per tick, the same bits compiled or interpreted.
 The state's arrays are updated in place by the ``*_into`` kernels: returning new arrays from a
 compiled call costs about 1 us each in boxing.
 
-The compiled tick (``firmware.tick``) allocates nothing: ``predict_ws``, ``gain_ws``,
+The compiled tick (``firmware``) allocates nothing: ``predict_ws``, ``gain_ws``,
 ``update_ws`` and ``tick_ws`` work in a workspace record (``workspace_dtype``: every
-intermediate matrix, sized by the measurements m and the states n); the functions without
-``_ws`` allocate theirs and are the same arithmetic, for the Python reference and the tests."""
+intermediate matrix, sized by the measurements m and the states n; ``workspace`` makes one
+for a Python caller)."""
 
 from __future__ import annotations
 
@@ -390,36 +390,3 @@ def all_finite(x, P) -> bool:
             if not math.isfinite(P[i, j]):
                 return False
     return True
-
-
-# ---------------------------------------------------------------- allocating (Python callers)
-
-
-def predict_into(phi, gamma, q_unit, x, P, u, q, with_x):
-    predict_ws(phi, gamma, q_unit, x, P, u, q, with_x, workspace(1, P.shape[0]))
-
-
-def gain(H, P, R, r, resid, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive):
-    """``gain_ws`` on copies: returns (K, eps, P, R, r, b_pow, guard acted, diag(H P H^T))."""
-    W = workspace(H.shape[0], H.shape[1])
-    Pn, Rn, rn = P.copy(), R.copy(), r.copy()
-    b_pow, hit = gain_ws(H, Pn, Rn, rn, resid, r_floor, r_scale, b_pow, b, adaptive,
-                         bias_adaptive, W)
-    return W.K.copy(), W.eps.copy(), Pn, Rn, rn, b_pow, hit, W.hph.copy()
-
-
-def update_into(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive, bias_adaptive,
-                eps_out, hph_out):
-    W = workspace(H.shape[0], H.shape[1])
-    b_pow, hit = update_ws(H, D, P, R, r, x, z, u, r_floor, r_scale, b_pow, b, adaptive,
-                           bias_adaptive, W)
-    eps_out[:] = W.eps
-    hph_out[:] = W.hph
-    return b_pow, hit
-
-
-def tick_into(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now, r_floor,
-              r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out):
-    return tick_ws(phi, gamma, q_unit, H, D, P, R, r, x, u_tick, q, z0, z1, z2, u_now,
-                   r_floor, r_scale, b_pow, b, adaptive, bias_adaptive, eps_out, hph_out,
-                   workspace(H.shape[0], H.shape[1]))

@@ -1,11 +1,10 @@
-"""The BP-PID network's compiled kernels (``firmware.control.bppid`` is the controller): the
+"""The BP-PID network's compiled kernels (``firmware.control`` is the controller): the
 forward pass and one learning step, the network's arrays updated in place."""
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 
 from firmware.kernels import njit
 
@@ -28,14 +27,6 @@ def forward(w_h, b_h, w_o, b_o, y, scale, x, h, g, gains):
             s += w_o[k, i] * h[i]
         g[k] = 0.5 * (1.0 + math.tanh(s + b_o[k]))
         gains[k] = scale[k] * g[k]
-
-
-@njit
-def learn(w_h, b_h, w_o, b_o, dw_h, db_h, dw_o, db_o, x, h, g, scale, e, d_p, d_i, d_d,
-          alpha, eta):
-    """``learn_into`` with its deltas allocated."""
-    learn_into(w_h, b_h, w_o, b_o, dw_h, db_h, dw_o, db_o, x, h, g, scale, e, d_p, d_i, d_d,
-               alpha, eta, np.empty(w_o.shape[0]), np.empty(w_o.shape[1]))
 
 
 @njit

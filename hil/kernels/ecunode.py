@@ -1,7 +1,7 @@
 """The ECU node's frame handling compiled: what ``hil.nodes.EcuNode`` does with a received
 frame (``receive``: the receive table, one branch per message the firmware listens to,
 ``firmware.safety.RX_CHECKS`` on the DBC's layout) and per tick (``tick``: the timeouts, the
-inputs, the compiled ECU tick ``firmware.tick.ecu.tick``, the frames it sends, signed where
+inputs, the compiled ECU tick ``firmware.ecu.tick``, the frames it sends, signed where
 SecOC secures them), and the tick's record (``record``: the hashed row, the trace row).
 
 The same functions serve the ECU node of ``hil run`` (one call per frame and per tick) and
@@ -21,7 +21,7 @@ import numpy as np
 from firmware import params as fp
 from firmware.kernels import njit
 from firmware.safety import FAULT_AUTH, FAULT_TIMEOUT
-from firmware.tick import ecu
+from firmware import ecu
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels.bus import (M_CMD, M_EST, M_REC, M_SENSORS, M_SPEED, M_STATUS,

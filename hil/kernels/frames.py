@@ -25,8 +25,8 @@ import numpy as np
 
 from firmware import safety
 from firmware.kernels import INTERPRETED, njit
-from firmware.tick.layout import canonical
-from firmware.tick.util import round_half_away
+from firmware.layout import canonical
+from firmware.util import round_half_away
 
 MSG = np.dtype([("id", "i8"), ("dlc", "i8"), ("counter_bit", "i8"), ("checksum_byte", "i8"),
                 ("id_crc", "i8"), ("range_first", "i8"), ("range_n", "i8")])

@@ -16,7 +16,7 @@ same calls ``hil.nodes.EcuNode`` makes in ``hil run``.
 State: the record ``Z`` (``SIL``: the plant's and the app's scalars, their transmit COUNTERs,
 the frames sent and seen per message) and the ECU node's record; the tables of
 ``hil.kernels.bus``; the plant's arrays (``hil.plant.QuarterCarPlant``'s); the ECU's records
-(``firmware.tick``); the per-tick outputs (the plant's observations, the ECU's trace rows,
+(``firmware``); the per-tick outputs (the plant's observations, the ECU's trace rows,
 the hashed rows, the frame log, the driver's requests).
 """
 

@@ -1,5 +1,5 @@
 """Faulted drives of the ECU alone: a golden scenario's recorded inputs (``ticks/``) with
-faults of every kind the inputs can carry, fed tick by tick to ``firmware.tick.Ecu``; every
+faults of every kind the inputs can carry, fed tick by tick to ``firmware.ecu.Ecu``; every
 output, the fixed-point path's per-tick hand-over (the C parity record), the DTC memory and
 the UDS server's answers at the end, pinned by digest in ``faulted.json``.
 
@@ -94,7 +94,7 @@ def uds_answers(ecu, params, tick: int) -> list[bytes]:
     """The UDS server's answers on the ECU's memory: ``UDS_REQUESTS``, then each stored
     snapshot's and extended data record's read."""
     from firmware.diag import uds
-    from firmware.tick.dtc import DTCS
+    from firmware.diag.dtc import DTCS
 
     reqs = list(UDS_REQUESTS)
     for i, e in enumerate(ecu.diag.dtc.entries):
@@ -107,8 +107,8 @@ def uds_answers(ecu, params, tick: int) -> list[bytes]:
 def drive(name: str) -> dict:
     """One of ``DRIVES``: its digests and what it reached (the confirmed DTCs)."""
     from calib.fx_tables import build_tables
-    from firmware.tick import Ecu
-    from firmware.tick.dtc import DTCS
+    from firmware.ecu import Ecu
+    from firmware.diag.dtc import DTCS
     from hil.config import default_vehicle
     from hil.sil import ecu_params
     from tests import golden

@@ -1,16 +1,15 @@
-"""The compiled ECU's diagnostic memory seen from Python, between ticks: the UDS server
-(``firmware.diag.uds``), a new operation cycle (``firmware.diag.dtc.new_cycle``) and the
-bench read and write the DTC rows of the state record (``firmware.tick.dtc``) through the
-interface of ``firmware.diag.dtc.DtcMemory`` (``entries[i].status``, ``.snapshot``, ...), and
-the last tick's values through ``DiagState.view``'s tuple."""
+"""The ECU's diagnostic memory seen from Python, between ticks: the UDS server
+(``firmware.diag.uds``) and the bench read and write the DTC rows of the state record
+(``firmware.diag.dtc``) as objects (``entries[i].status``, ``.snapshot``, ...: a row's fields,
+read and written through), the session as the server's own, and the last tick's values
+(``view``: a tuple)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from firmware.diag import SESSION_DEFAULT
+from firmware.diag import SESSION_DEFAULT, dtc
 from firmware.diag.dtc import Snapshot
-from firmware.tick import dtc
 
 _ROW = ("status", "fdc", "passes", "occurrences", "aging", "first_tick")
 
@@ -67,7 +66,7 @@ class EntriesView:
 
 
 class MemoryView:
-    """``firmware.diag.dtc.DtcMemory`` over the record ``S.dtc``."""
+    """The DTC memory: the record ``S.dtc``'s rows and flags."""
 
     _FLAGS = ("setting_on", "quiet", "tnc_done", "cycle")
 
@@ -88,9 +87,9 @@ class MemoryView:
 
 
 class DiagView:
-    """``firmware.diag.DiagState`` for the UDS server: the session is the server's (Python,
-    between ticks); the DTC memory, the actuator test's supply reading and the last tick's
-    values are the state record's."""
+    """What the UDS server reads and writes: the session is the server's (Python, between
+    ticks); the DTC memory, the actuator test's supply reading and the last tick's values are
+    the state record's."""
 
     def __init__(self, state):
         self._s = state[0]                     # the state record's element (np.void)

@@ -1,19 +1,51 @@
-"""Stages 5-6 in float, compiled: the controller of the active mode with its crossfade
-(``firmware.control``), the final gate (``firmware.safety.force_allowed``) and the actuator
-stage (``firmware.actuator``: force -> current reference -> H-bridge voltage -> Q15 duty).
-The controllers: PID and BP-PID (``firmware.control.pid``, ``bppid``), LQR and GA-LQR
-(u = -K x), skyhook, the energy-feedback damping law."""
+"""Stage 5, the controllers of the working modes, each mapping the ECU's signals to a force
+command (N), and ``command``: the active mode's controller with a crossfade over
+``ModeParams.ramp_ticks`` when the controller changes (bumpless transfer), the force limited.
+Compiled (numba) over the state record's ``ctl`` fields.
+
+* **PID** on the body acceleration, incremental (errata 13):
+
+      du = K_p (e_k - e_{k-1}) + K_i e_k dt + K_d (e_k - 2 e_{k-1} + e_{k-2}) / dt
+      u_k = leak * u_{k-1} + du
+
+  with e = r - y = -BA (reference: no body acceleration). The integral of -BA is minus the
+  body velocity, so K_i acts as skyhook damping; the leak (a time constant of seconds, far
+  below the body mode) keeps an accelerometer offset from winding the output up.
+* **BP-neural-network PID** (comfort; paper Eq. (27)-(38), errata 13): a 4-5-3 network with
+  inputs [r, y, e, 1] (normalised), tanh hidden layer and output layer
+  g(x) = e^x / (e^x + e^-x) = (1 + tanh x) / 2 in (0, 1). The outputs, scaled to the plant's
+  units, are K_p, K_i, K_d of the incremental PID. Online learning of E = e^2 / 2 by gradient
+  descent with momentum, sgn(dy/du) for the unknown plant gradient (BA rises with the force:
+  +1). The derivative of g is g' = 2 g (1 - g); of tanh, 1 - f^2 (errata 13); the arithmetic
+  is ``firmware.kernels.bppid``'s. The PID takes the network's gains through a first-order
+  low-pass (``bp_gain_alpha`` per tick, a time constant of seconds; seeded with the network's
+  output when the controller starts): the network's gains follow BA, and gains that change
+  within a body cycle rectify it. The integral term K_i(BA) e dt then has a mean,
+  E[K_i(BA) BA] != 0, which the integrator turned into a static force (about 30 N on the
+  default car: the body 2 mm lower, SWS up to 20 % above the design). A gain that moves
+  slowly against the signal it multiplies does not. Comfort adds the LQR term of ``k_comfort``.
+* **LQR** state feedback u = -K x on the AKF's estimate: safety mode's gain (designed by
+  ``calib.design``, LQR with BA and SWS bounded by the passive car's) and comprehensive mode's
+  GA-LQR gain (tuned by ``calib.galqr``, Eq. (43)/(44)). The firmware only applies the gain.
+* **Skyhook** damping: a force against the body velocity, plus optional added damping on the
+  relative velocity (x = [zs', zt', zs, zt, zf]).
+* **Energy feedback** (the motor as a generator): a damping law (harvesting damping on the
+  relative velocity plus a skyhook part on the body velocity). Only dissipative forces can be
+  harvested, so a force that would have to push (F * v_rel > 0) is dropped to zero: a
+  semi-active law. The actuator stage (``firmware.actuator``) then keeps the terminal voltage
+  where power flows into the storage element.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from firmware.actuator import CURRENT_MARGIN, DUTY_MAX_Q15, DUTY_MIN_Q15, Q15_ONE
+from firmware.actuator import ACTUATOR
 from firmware.kernels import bppid as bp_kern
 from firmware.kernels import njit
 from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_NONE, CTRL_PID, CTRL_REGEN,
                              CTRL_SKYHOOK)
-from firmware.tick.util import clamp, pymax, pymin, round_half_away
+from firmware.util import clamp
 
 PID = np.dtype([("e1", "f8"), ("e2", "f8"), ("u", "f8")])
 
@@ -30,10 +62,6 @@ def bppid_dtype(n_in: int, n_hidden: int, n_out: int) -> np.dtype:
         ("fresh", "u1"),             # the next step seeds k_pid with the network's gains
         ("delta_o", "f8", (n_out,)), ("delta_h", "f8", (n_hidden,)),   # (learning's deltas)
     ])
-
-
-ACTUATOR = np.dtype([("integ", "f8"), ("i_ref_prev", "f8"), ("voltage", "f8"),
-                     ("i_prev", "f8"), ("observer_valid", "u1"), ("emf", "f8")])
 
 
 def state_dtype(n_in: int, n_hidden: int, n_out: int) -> np.dtype:
@@ -142,60 +170,3 @@ def command(P, S, want: int, ramp_ticks: int, x, ba: float, dt: float) -> float:
         force = beta * force + (1.0 - beta) * force_of(P, S, S.ctrl_from, x, ba, dt)
     lim = P.force_limit
     return clamp(force, -lim, lim)
-
-
-# ---------------------------------------------------------------- actuator
-
-
-@njit
-def current_reference(pl, force: float, rel_vel: float, compensate: bool) -> float:
-    demand = force + (pl.friction * rel_vel if compensate else 0.0)
-    g = pl.efficiency if demand * rel_vel >= 0.0 else 1.0 / pl.efficiency
-    i_ref = demand / (g * pl.force_constant)
-    lim = CURRENT_MARGIN * pl.current_limit
-    return clamp(i_ref, -lim, lim)
-
-
-@njit
-def duty_to_q15(duty: float) -> int:
-    return pymin(DUTY_MAX_Q15, pymax(DUTY_MIN_Q15, round_half_away(duty * Q15_ONE)))
-
-
-@njit
-def actuator_step(A, pl, S, i_ref: float, i_meas: float, rel_vel: float, regen: bool,
-                  min_ratio: float, rel_acc: float, dt: float) -> int:
-    """Voltage for this tick from the current reference; returns the duty in Q15."""
-    if S.observer_valid:
-        emf = S.voltage - (i_meas - A.current_a * S.i_prev) / A.current_b
-        emf += pl.force_constant * rel_acc * dt
-    else:
-        emf = pl.force_constant * (rel_vel + 0.5 * dt * rel_acc)
-    S.emf = emf
-    v_dc = pl.storage_voltage if regen else pl.bus_voltage
-    # the integral learns the model error seen on the last tick's reference
-    v_ff = emf + (i_ref - A.current_a * i_meas) / A.current_b
-    v = v_ff + S.integ
-    lo, hi = -v_dc, v_dc
-    if regen:
-        r = min_ratio * emf
-        a, b = (emf, r) if emf < r else (r, emf)     # (sorted((r, emf)))
-        lo, hi = pymax(lo, a), pymin(hi, b)
-    saturated = v < lo or v > hi
-    v = clamp(v, lo, hi)
-    if not saturated:
-        S.integ += A.ki * (S.i_ref_prev - i_meas)
-        S.integ = clamp(S.integ, -A.integ_limit, A.integ_limit)
-    S.i_ref_prev = i_ref
-    duty = duty_to_q15(v / v_dc)
-    S.voltage = duty / Q15_ONE * v_dc      # what the bridge applies (quantised duty)
-    S.i_prev = i_meas
-    S.observer_valid = True
-    return duty
-
-
-@njit
-def actuator_reset(S) -> None:
-    S.integ = 0.0
-    S.i_ref_prev = 0.0
-    S.voltage = 0.0
-    S.observer_valid = False

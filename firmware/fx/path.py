@@ -1,10 +1,9 @@
 """The fixed-point path's stages 2 and 5-6, compiled: the integer half of the Kalman filter
-(``firmware.fx.akf``: ADC counts to Q signals, the prediction, the residual, the correction
-with the gain the float half hands over), the controllers (``firmware.control.fx``) and the
-actuator (``firmware.fx.actuator``), function for function the Python they replace and so
-the C of ``c/ecu_fx.c`` (``firmware/fx/__init__.py`` has the table). The tables record ``T``
-is ``calib.fx_tables.build_tables``'s ``FxTables`` laid out by ``firmware.tick.layout``: a
-constant is ``T.name.m``/``T.name.frac``, a table of them ``T.name.m[i]``/``.frac[i]``."""
+(ADC counts to Q signals, the prediction, the residual, the correction with the gain the
+float half hands over), the controllers and the actuator, function for function the C of
+``c/ecu_fx.c`` (``firmware/fx/__init__.py`` has the table). The tables record ``T`` is
+``calib.fx_tables.build_tables``'s ``FxTables`` laid out by ``firmware.layout``: a constant is
+``T.name.m``/``T.name.frac``, a table of them ``T.name.m[i]``/``.frac[i]``."""
 
 from __future__ import annotations
 
@@ -18,9 +17,8 @@ from firmware.fx.tables import (ADC_FRAC, F_ACC, F_CUR, F_FORCE, F_JERK, F_NN, F
 from firmware.kernels import njit
 from firmware.params import (CTRL_BPPID, CTRL_GALQR, CTRL_LQR, CTRL_PID, CTRL_REGEN,
                              CTRL_SKYHOOK)
-from firmware.fixedpoint import INT32_MAX, INT32_MIN
-from firmware.tick.fixedpoint import (add, clamp, cm, cmi, div_round, mul, neg, rshift_round,
-                                      same_sign_or_zero, sat16, sat32, sub, to_fixed)
+from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, clamp, cm, cmi, div_round, mul, neg,
+                                 rshift_round, same_sign_or_zero, sat16, sat32, sub, to_fixed)
 
 PID = np.dtype([("e1", "i8"), ("e2", "i8"), ("u", "i8")])
 
@@ -216,7 +214,7 @@ def bppid_step(T, S) -> int:
             S.k_pid[k] = add(S.k_pid[k], cm(T.bp_gain_alpha, sub(S.gains[k], S.k_pid[k]), gf,
                                             gf))
     u, tp, ti, td = pid_step(T, S.bp_pid, neg(S.ba), S.k_pid[0], S.k_pid[1], S.k_pid[2])
-    # learning (firmware.control.bppid): deltas and weight steps in Q(F_W)
+    # learning (firmware.control's BP-PID): deltas and weight steps in Q(F_W)
     for k in range(3):
         du, du_f = (tp, F_ACC) if k == 0 else (ti, F_VEL) if k == 1 else (td, F_JERK)
         a_k = cmi(T.bp_du_scale, k, du, du_f, F_NN)
@@ -341,7 +339,7 @@ def control(T, S, want: int, passive: bool, fault: bool, regen: bool):
         force = sat32(div_round(S.ramp * force + (n - S.ramp) * f_from, n))
     lim = T.force_limit.m
     force = clamp(force, -lim, lim)
-    active = (not passive or S.ramp < n) and not fault      # firmware.safety.force_allowed
+    active = (not passive or S.ramp < n) and not fault      # the final gate (firmware.ecu._control)
     if active:
         x = S.x
         rel = sub(x[0], x[1])

@@ -40,8 +40,8 @@ OUTPUTS = np.dtype([("duty_q15", "i8"), ("regen", "u1"), ("enable", "u1"),
 
 # fields a calibration may leave out (None), with the value the tick reads instead
 _NONE_AS = {"gamma_wheel": lambda p: np.zeros(5)}
-# constants the tick reads, computed here once, as the Python computes them per tick
-# (``sigma ** 2`` is libm's pow, not sigma * sigma)
+# constants the tick reads, computed here once, in Python (``sigma ** 2`` is libm's pow, not
+# sigma * sigma: the bits the tick was pinned with)
 DERIVED = {
     "AkfParams": (
         ("lift_force_var", lambda a: a.lift_force_sigma_n ** 2),

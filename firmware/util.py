@@ -1,4 +1,5 @@
-"""Small helpers of the compiled stages, each with the bits of the Python it replaces."""
+"""Small helpers of the compiled stages, with the semantics of the Python builtins they stand
+for (where a NaN goes, which way a tie rounds)."""
 
 from __future__ import annotations
 
@@ -27,5 +28,5 @@ def clamp(x, lo, hi):
 
 @njit
 def round_half_away(x: float) -> int:
-    """``firmware.fixedpoint.round_half_away``: half away from zero."""
+    """Half away from zero (``firmware.fixedpoint.round_half_away``, which refuses a NaN)."""
     return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)
