@@ -20,7 +20,6 @@ it stands for the ECU's non-volatile memory.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -134,17 +133,6 @@ class Snapshot(NamedTuple):
     supply_mv: int           # DC supply voltage, mV (0xFFFF: not measured)
 
 
-@dataclass
-class DtcEntry:
-    status: int = STATUS_AFTER_CLEAR
-    fdc: int = FDC_MIN
-    passes: int = 0               # passed reports in a row
-    occurrences: int = 0          # operation cycles with a failure since the last clear
-    aging: int = 0                # operation cycles passed without failure since it failed
-    snapshot: Snapshot | None = None
-    first_tick: int = -1          # tick of the first failure this cycle (detection time)
-
-
 N = len(DTCS)
 SOURCE = np.array([d.source for d in DTCS], dtype=np.int64)
 BIT = np.array([d.bit for d in DTCS], dtype=np.int64)
@@ -172,11 +160,12 @@ def init(S) -> None:
 
 
 def clear_entries(S, idx) -> None:
+    """The rows ``idx`` as after a clear (the status 0x50, no snapshot, counters at rest)."""
     for i in idx:
-        S.status[i], S.fdc[i], S.first_tick[i] = STATUS_AFTER_CLEAR, FDC_MIN, -1
-        S.passes[i] = S.occurrences[i] = S.aging[i] = S.has_snapshot[i] = 0
-        S.snapshot[i, :] = 0
-    S.quiet, S.tnc_done = True, False
+        S["status"][i], S["fdc"][i], S["first_tick"][i] = STATUS_AFTER_CLEAR, FDC_MIN, -1
+        S["passes"][i] = S["occurrences"][i] = S["aging"][i] = S["has_snapshot"][i] = 0
+        S["snapshot"][i, :] = 0
+    S["quiet"], S["tnc_done"] = True, False
 
 
 @njit
@@ -276,9 +265,7 @@ def clear(mem, group: int) -> bool:
         idx = (BY_CODE[group],)
     else:
         return False
-    for i in idx:
-        mem.entries[i] = DtcEntry()
-    mem.quiet, mem.tnc_done = True, False
+    clear_entries(mem.record, idx)
     return True
 
 

@@ -15,7 +15,8 @@ _ROW = ("status", "fdc", "passes", "occurrences", "aging", "first_tick")
 
 
 class EntryView:
-    """One DTC's row (``firmware.diag.dtc.DtcEntry``'s fields, read and written through)."""
+    """One DTC's row (its fields, read and written through; ``snapshot`` as a ``Snapshot`` or
+    None)."""
 
     __slots__ = ("_m", "_i")
 
@@ -55,35 +56,29 @@ class EntriesView:
             raise IndexError(i)
         return EntryView(self._m, i % dtc.N)
 
-    def __setitem__(self, i: int, entry) -> None:
-        """``entries[i] = DtcEntry()`` (a clear): its fields into the row."""
-        view = self[i]
-        for name in _ROW + ("snapshot",):
-            setattr(view, name, getattr(entry, name))
-
     def __iter__(self):
         return (EntryView(self._m, i) for i in range(dtc.N))
 
 
 class MemoryView:
-    """The DTC memory: the record ``S.dtc``'s rows and flags."""
+    """The DTC memory: the record ``S.dtc``'s rows and flags (``record``: the record itself)."""
 
     _FLAGS = ("setting_on", "quiet", "tnc_done", "cycle")
 
     def __init__(self, mem):
-        object.__setattr__(self, "_m", mem)
+        object.__setattr__(self, "record", mem)
         object.__setattr__(self, "entries", EntriesView(mem))
 
     def __getattr__(self, name):
         if name in MemoryView._FLAGS:
-            value = self._m[name]
+            value = self.record[name]
             return int(value) if name == "cycle" else bool(value)
         raise AttributeError(name)
 
     def __setattr__(self, name, value):
         if name not in MemoryView._FLAGS:
             raise AttributeError(name)
-        self._m[name] = value
+        self.record[name] = value
 
 
 class DiagView:
