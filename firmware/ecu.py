@@ -410,13 +410,13 @@ class Ecu:
     def fx_tick(self) -> tuple:
         """The fixed-point path's last tick as the C parity trace takes it: its inputs
         (``TickIn``) and the integers C compares (``c/trace_replay.c``)."""
-        f = self.S[0]["fx"]
-        counts = tuple(None if c < 0 else int(c) for c in f["counts"])
-        tin = TickIn(counts, tuple(int(v) for v in f["k_q"]), tuple(int(v) for v in f["r_q"]),
-                     int(f["want"]), bool(f["passive"]), bool(f["fault"]), bool(f["regen"]),
-                     bool(f["reset"]))
-        return tin, (int(f["duty"]), int(f["force"]), *(int(v) for v in f["x"]),
-                     *(int(v) for v in f["resid"]), int(f["integ"]), int(f["voltage"]))
+        return fx_entry(self.S[0]["fx"])
+
+    def fx_entries(self, records: np.ndarray) -> list[tuple]:
+        """``fx_tick``'s entries of ticks whose ``S["fx"]`` the compiled SIL loop copied
+        (``records``: an array of that record)."""
+        return [fx_entry(f) for f in records]
+
 
     def reset(self) -> None:
         """ECU reset (UDS 0x11): the control state starts again, the DTC memory stays
@@ -443,3 +443,14 @@ class Ecu:
     def x(self) -> np.ndarray:
         """The state estimate [zs', zt', zs, zt, zf] (a view: written through)."""
         return self.S[0]["akf"]["x"]
+
+
+def fx_entry(f) -> tuple:
+    """One tick of the C parity trace from the state's fixed-point hand-over ``S["fx"]``:
+    its inputs (``TickIn``) and the integers C compares (``c/trace_replay.c``)."""
+    counts = tuple(None if c < 0 else int(c) for c in f["counts"])
+    tin = TickIn(counts, tuple(int(v) for v in f["k_q"]), tuple(int(v) for v in f["r_q"]),
+                 int(f["want"]), bool(f["passive"]), bool(f["fault"]), bool(f["regen"]),
+                 bool(f["reset"]))
+    return tin, (int(f["duty"]), int(f["force"]), *(int(v) for v in f["x"]),
+                 *(int(v) for v in f["resid"]), int(f["integ"]), int(f["voltage"]))

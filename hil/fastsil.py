@@ -2,20 +2,29 @@
 and the same bytes as ``hil.nodes.run_in_process`` for the runs it covers (``eligible``),
 over the same node objects, whose state it loads before and writes back after.
 
-Python takes over at the events of a plain SIL run (its calendar): every ``CHUNK`` ticks the
-sensors' noise for the next block is drawn (the same stream as ``hil.sensors.SensorSuite``'s
-blocks of 256), and at ``run_in_process``'s progress ticks progress is shown; each time the
-trace hash takes the rows hashed since, ``on_frame`` sees the frames in bus order and the
-driver's requests join the app's log. A fault campaign's injector, a driver policy of Python
-(a script, a person), the C parity record, a run without SecOC or a node that already ran
-take ``hil.nodes.run_in_process`` instead.
+The compiled loop runs until the next event of Python's calendar, where Python takes over,
+then resumes:
+- every ``CHUNK`` ticks the sensors' noise for the next block is drawn (the same stream as
+  ``hil.sensors.SensorSuite``'s blocks of 256), and at ``run_in_process``'s progress ticks
+  progress is shown; each time the trace hash takes the rows hashed since, ``on_frame`` sees
+  the frames in bus order, and the driver's requests and what the driver was told join the
+  app's logs;
+- in the spans of Python's own (a fault campaign's windows, ``hil.faults.Injector.spans``,
+  and the caller's ``python`` spans: a tester's read of the DTC memory) the node objects run
+  the ticks (``run_in_process``), from the state the loop wrote back into them; the loop
+  loads it again after the span;
+- a driver script's entries: Python's app sends them (``calendar``).
+The same bytes either way (``tests/test_silloop.py``). The C parity record (the fixed-point hand-over of every tick) is copied in the loop. A person
+driving (``interactive``, ``web``), the app's callbacks, a run without SecOC, or a realtime
+or diagnosed ECU node take ``hil.nodes.run_in_process`` instead.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-from typing import Callable, Optional
+from collections import Counter
+from typing import Callable, Iterable, Optional
 
 import numpy as np
 
@@ -25,7 +34,7 @@ from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels import silloop as kl
-from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode
+from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode, message_name, run_in_process
 
 CHUNK = 16384            # ticks between Python's turns (a multiple of the noise block, 256)
 _OWN = {"PLANT": ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS",
@@ -40,8 +49,6 @@ _KIND_NAME = {v: k for k, v in REQ_KINDS.items()}
 def eligible(plant: PlantNode, ecu_node: EcuNode, app: AppNode) -> Optional[str]:
     """None when the compiled loop covers this run; else why not (``run_in_process`` runs
     it)."""
-    if plant.inject is not None or app.inject is not None:
-        return "a fault campaign's injector"
     if app.policy not in kl.POLICIES:
         return f"the driver policy {app.policy!r}"
     if any(cb is not None for cb in (app.on_request, app.on_faults, app.on_recommend)):
@@ -50,13 +57,17 @@ def eligible(plant: PlantNode, ecu_node: EcuNode, app: AppNode) -> Optional[str]
         return "a run without SecOC"
     if not (ecu_node.key_sha == _sha(plant.cmd_auth.mac.key) == _sha(app.req_sec.mac.key)):
         return "nodes with different SecOC keys"
-    if ecu_node.state.log is not None:
-        return "the fixed-point path's C parity record"
     if not ecu_node.lockstep or ecu_node.uds is not None:
         return "a realtime or diagnosed ECU node"
-    if plant.k or ecu_node.k or app.n_status or ecu_node.pending:
-        return "nodes that already ran"
+    if not _between_ticks(plant, ecu_node):
+        return "nodes in the middle of a tick"
     return None
+
+
+def _between_ticks(plant: PlantNode, ecu_node: EcuNode) -> bool:
+    """The nodes stand between two lockstep ticks (where the loop can take them over)."""
+    return (not plant.cmd_fresh and not ecu_node.pending and ecu_node.held_cmd is None
+            and not ecu_node.unrecorded and ecu_node.k == plant.k)
 
 
 def _sha(key: bytes) -> str:
@@ -79,155 +90,291 @@ def _noise_tick(plant: PlantNode) -> int:
     return k
 
 
-def _sil_state(plant: PlantNode, app: AppNode, log_on: bool) -> np.ndarray:
-    za = kf.table(kl.SIL, 1)
-    z = view(za)
-    a = plant.active
-    sup = plant.supply.channel
-    z.n, z.dt = plant.n, plant.dt
-    z.p_speed, z.p_supply, z.p_truth, z.p_energy = (plant.p_speed, plant.p_supply,
-                                                    plant.p_truth, plant.p_energy)
-    z.cmd_timeout = plant.cmd_timeout_ticks
-    z.cmd_duty, z.cmd_regen, z.cmd_enable = plant.cmd
-    z.cmd_tick, z.cmd_seq = plant.cmd_tick, plant.cmd_seq
-    z.has_actuator, z.track, z.ind_l, z.zf = a.has_actuator, a.track_ledger, a._L, a.zf
-    z.noise_k = _noise_tick(plant)
-    z.noise_gain = plant.noise_step[1] if plant.noise_step is not None else 1.0
-    z.gain[:] = plant.sensors.noise_gain
-    z.sup_std, z.sup_min, z.sup_lsb, z.sup_full = (sup.noise_std, sup.range_min, sup.lsb,
-                                                   2 ** sup.bits - 1)
-    z.policy = kl.POLICIES.index(app.policy)
-    z.app_mode, z.reaction, z.app_p_status = app.mode, app.reaction_ticks, app.p_status
-    z.kind, z.rmode, z.rid = app.kind, app.req_mode, app.req_id
-    z.shown, z.shown_since, z.answered = app._shown, app._shown_since, app._answered
-    z.log_on = log_on
-    return za
+def calendar(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
+             python: Iterable[tuple[int, int]] = ()) -> list[tuple[int, int]]:
+    """The spans [start, end) of ticks Python runs, merged and sorted: the injectors',
+    ``python``'s, and a driver script's (from the tick of an entry's time to past the next
+    MODE_RECOMMEND, where the app sends it; ``_python_owes`` runs on if that comes later)."""
+    spans = [*python, *(s for node in (plant, app) if node.inject is not None
+                        for s in node.inject.spans())]
+    if app.policy == "script":
+        e = ecu_node.E[0]
+        after = int(e["p_rec"]) + int(e["p_status"]) + 2
+        for t_s, *_ in app.script:
+            if math.isfinite(t_s):
+                k = max(0, int(t_s / plant.dt) - 1)
+                spans.append((k, k + after))
+    spans.sort()
+    out: list[list[int]] = []
+    for a, b in spans:
+        if b <= a:
+            continue
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return [(a, b) for a, b in out]
 
 
-def _plant_receiver(plant: PlantNode) -> np.ndarray:
-    """The plant's receiver of ACTUATOR_CMD (its own spec: COUNTER and CHECKSUM checked)."""
-    rx, st = kf.rx_table(1), plant.cmd_rx
-    kf.supervise(rx[0], plant.codec.specs[ID["ACTUATOR_CMD"]])
-    r = rx[0]
-    r["valid"], r["good_run"], r["faults"] = st.valid, st.good_run, st.faults
-    r["last_counter"], r["last_rx_tick"] = st.last_counter, st.last_rx_tick
-    return rx
+def _python_owes(plant: PlantNode, ecu_node: EcuNode, app: AppNode) -> bool:
+    """Python runs on past its span: the nodes are in the middle of a tick, or a script's
+    entry is due (it goes with the next MODE_RECOMMEND: ``AppNode._decide``'s test)."""
+    if plant.done:
+        return False
+    return not _between_ticks(plant, ecu_node) or (
+        app.policy == "script" and bool(app.script)
+        and app.script[0][0] <= app.t * app.dt + 1e-9)
 
 
-def _secoc(codec, plant: PlantNode, app: AppNode) -> np.ndarray:
-    """The plant's verifier of ACTUATOR_CMD and the app's signer of DRIVER_REQUEST."""
-    sec = kf.table(ks.SEC, 4)
-    for s, name, fv, rejected in ((kb.S_CMD_RX, "ACTUATOR_CMD", plant.cmd_auth.latest,
-                                   plant.cmd_auth.rejected),
-                                  (kb.S_REQ_TX, "DRIVER_REQUEST", app.req_sec.fv, 0)):
-        lay = secoc.layout(codec, name)
-        sec[s] = (lay.fv_byte, lay.mac_byte, fv, rejected)
-    return sec
+class _Loop:
+    """The compiled loop's state over one run: the SIL record, the tables, the per-tick
+    outputs and the buffers Python empties after each call."""
+
+    def __init__(self, plant: PlantNode, ecu_node: EcuNode, app: AppNode,
+                 on_frame: Optional[Callable[[int, bytes], None]]):
+        self.plant, self.ecu_node, self.app, self.on_frame = plant, ecu_node, app, on_frame
+        codec = plant.codec
+        self.M, self.F, self.fault_bits = codec.bus_tables()
+        za = kf.table(kl.SIL, 1)
+        self.za, self.z = za, view(za)
+        z = self.z
+        sup = plant.supply.channel
+        z.n, z.dt = plant.n, plant.dt
+        z.p_speed, z.p_supply, z.p_truth, z.p_energy = (plant.p_speed, plant.p_supply,
+                                                        plant.p_truth, plant.p_energy)
+        z.cmd_timeout = plant.cmd_timeout_ticks
+        a = plant.active
+        z.has_actuator, z.track, z.ind_l = a.has_actuator, a.track_ledger, a._L
+        z.noise_k = _noise_tick(plant)
+        z.noise_gain = plant.noise_step[1] if plant.noise_step is not None else 1.0
+        z.sup_std, z.sup_min, z.sup_lsb, z.sup_full = (sup.noise_std, sup.range_min, sup.lsb,
+                                                       2 ** sup.bits - 1)
+        z.policy = kl.POLICIES.index(app.policy)
+        z.app_mode, z.reaction, z.app_p_status = app.mode, app.reaction_ticks, app.p_status
+        z.log_on = on_frame is not None
+        z.wire = plant.inject is not None
+        self.prx = kf.rx_table(2)
+        for r in self.prx:
+            kf.supervise(r, codec.specs[ID["ACTUATOR_CMD"]])
+        self.sec = kf.table(ks.SEC, kl.S_CMD_WIRE + 1)
+        lay = secoc.layout(codec, "ACTUATOR_CMD")
+        for s in (kb.S_CMD_RX, kl.S_CMD_WIRE):
+            self.sec[s]["fv_byte"], self.sec[s]["mac_byte"] = lay.fv_byte, lay.mac_byte
+        lay = secoc.layout(codec, "DRIVER_REQUEST")
+        self.sec[kb.S_REQ_TX]["fv_byte"], self.sec[kb.S_REQ_TX]["mac_byte"] = (lay.fv_byte,
+                                                                              lay.mac_byte)
+        n = plant.n
+        self.x = np.zeros(len(a.x))
+        self.true_grade = np.ascontiguousarray(plant.true_grade, dtype=np.int64)
+        self.segment = np.ascontiguousarray(plant.timeline.segment, dtype=np.int64)
+        self.speed = np.ascontiguousarray(plant.timeline.speed_mps, dtype=float)
+        self.rows = np.zeros((n, 9), np.int64)
+        self.hashbuf = np.zeros(CHUNK * kl.ROW_BYTES, np.uint8)
+        self.reqlog = np.zeros((CHUNK, 3), np.int64)
+        self.fslog = np.zeros((CHUNK, 3), np.int64)
+        cap = CHUNK * kl.FRAMES_PER_TICK if on_frame is not None else 1
+        self.log_id, self.log_dlc = np.zeros(cap, np.int64), np.zeros(cap, np.int64)
+        self.log_data = np.zeros((cap, 8), np.uint8)
+        # the C parity record: the state's fixed-point hand-over, copied per tick as bytes
+        st = ecu_node.state
+        self.s_bytes = st.S.view(np.uint8)
+        fx = st.S.dtype.fields["fx"]
+        z.fx_on, z.fx_off = st.log is not None, fx[1]
+        self.fx_rows = np.zeros((n if st.log is not None else 1, fx[0].itemsize), np.uint8)
+        self.fx_type = fx[0]
+        self.noise = self.sup_noise = self.sup_state = None
+        self.seen: Counter = Counter()
+
+    # -- the nodes' state in, and back -------------------------------------------------------
+
+    def load(self) -> None:
+        """The state of the node objects into the loop's (the ECU node's lives in its own
+        records, which the loop runs on)."""
+        plant, app, z = self.plant, self.app, self.z
+        a = plant.active
+        z.k, z.zf, z.in_bump, z.lifted = plant.k, a.zf, a.in_bump_contact, a.tire_lifted
+        self.x[:] = a.x
+        z.cmd_duty, z.cmd_regen, z.cmd_enable = plant.cmd
+        z.cmd_tick, z.cmd_seq, z.cmd_fresh = plant.cmd_tick, plant.cmd_seq, plant.cmd_fresh
+        z.bad_cmd, z.stale_cmd = plant.bad_cmd_frames, plant.stale_cmd_frames
+        z.fallback_ticks = plant.fallback_ticks
+        z.auth_failures, z.auth_booked = plant.auth_failures, plant.auth_failures_booked
+        z.bump_contacts = z.lift_offs = z.limited_steps = 0         # (added when put back)
+        z.gain[:] = plant.sensors.noise_gain
+        for node in (plant, app):
+            for name in _OWN[node.name]:
+                i = kb.MESSAGES.index(name)
+                z.ctr[i], z.sent[i] = node.tx.counters.get(name, 0), 0
+        z.seen[:] = 0
+        z.n_status, z.t, z.chosen = app.n_status, app.t, app._chosen
+        z.kind, z.rmode, z.rid = app.kind, app.req_mode, app.req_id
+        z.shown, z.shown_since, z.answered = app._shown, app._shown_since, app._answered
+        z.fs_word, z.fs_reason = app.faults_seen[-1][1:] if app.faults_seen else (0, 0)
+        for row, st in ((0, plant.cmd_rx), (kl.R_WIRE, plant.cmd_rx_wire)):
+            r = self.prx[row]
+            r["valid"], r["good_run"], r["faults"] = st.valid, st.good_run, st.faults
+            r["last_counter"], r["last_rx_tick"] = st.last_counter, st.last_rx_tick
+        for s, auth in ((kb.S_CMD_RX, plant.cmd_auth), (kl.S_CMD_WIRE, plant.cmd_auth_wire)):
+            self.sec[s]["fv"], self.sec[s]["rejected"] = auth.latest, auth.rejected
+        self.sec[kb.S_REQ_TX]["fv"], self.sec[kb.S_REQ_TX]["rejected"] = app.req_sec.fv, 0
+        self.ek0 = self.ecu_node.k
+        # the sensors' noise: what is left of their block, else a new one at the next turn
+        sens = plant.sensors
+        left = sens._noise[sens._next:]
+        self.noise = np.array(left) if len(left) else None
+        z.noise_base = plant.k
+        if self.noise is not None:
+            self._draw_supply(plant.k, len(self.noise))
+
+    def _draw_supply(self, k0: int, ticks: int) -> None:
+        """The supply channel's noise for its samples in ticks [k0, k0 + ticks) (where its
+        generator stood kept: ``put_back`` leaves it after the samples used)."""
+        plant = self.plant
+        rng = plant.supply.rng
+        self.sup_state = rng.bit_generator.state
+        first = -(-k0 // plant.p_supply) * plant.p_supply
+        self.sup_noise = rng.standard_normal(len(range(first, k0 + ticks, plant.p_supply)))
+        self.z.supply_next = 0
+
+    def put_back(self) -> None:
+        """The loop's state into the node objects, as ``run_in_process`` leaves it."""
+        z, plant, ecu_node, app = self.z, self.plant, self.ecu_node, self.app
+        a = plant.active
+        a.x, a.zf = self.x.copy(), float(z.zf)
+        a.bump_contacts += int(z.bump_contacts)
+        a.lift_off_events += int(z.lift_offs)
+        a.in_bump_contact, a.tire_lifted = bool(z.in_bump), bool(z.lifted)
+        a.current_limited_steps += int(z.limited_steps)
+        plant.k = int(z.k)
+        plant.cmd = (int(z.cmd_duty), bool(z.cmd_regen), bool(z.cmd_enable))
+        plant.cmd_tick, plant.cmd_fresh, plant.cmd_seq = int(z.cmd_tick), bool(z.cmd_fresh), \
+            int(z.cmd_seq)
+        plant.bad_cmd_frames, plant.stale_cmd_frames = int(z.bad_cmd), int(z.stale_cmd)
+        plant.fallback_ticks = int(z.fallback_ticks)  # (missed_cmds: none, or lockstep broke)
+        plant.auth_failures, plant.auth_failures_booked = int(z.auth_failures), \
+            int(z.auth_booked)
+        plant.sensors.noise_gain[:] = z.gain
+        for node in (plant, app):
+            for name in _OWN[node.name]:
+                i = kb.MESSAGES.index(name)
+                if z.sent[i]:
+                    node.tx.sent[name] += int(z.sent[i])
+                    node.tx.counters[name] = int(z.ctr[i])   # (Tx keeps one for every message)
+        for row, st in ((0, plant.cmd_rx), (kl.R_WIRE, plant.cmd_rx_wire)):
+            r = self.prx[row]
+            st.valid, st.good_run = bool(r["valid"]), int(r["good_run"])
+            st.last_counter, st.last_rx_tick = int(r["last_counter"]), int(r["last_rx_tick"])
+            st.faults = int(r["faults"])
+        for s, auth in ((kb.S_CMD_RX, plant.cmd_auth), (kl.S_CMD_WIRE, plant.cmd_auth_wire)):
+            auth.latest, auth.rejected = int(self.sec[s]["fv"]), int(self.sec[s]["rejected"])
+        app.req_sec.fv = int(self.sec[kb.S_REQ_TX]["fv"])
+        ecu_node.rows.frombytes(self.rows[self.ek0:ecu_node.k].tobytes())
+        st = ecu_node.state
+        if st.log is not None:
+            st.log += st.fx_entries(self.fx_rows[self.ek0:ecu_node.k].copy().view(
+                self.fx_type)[:, 0])
+        app.n_status, app.t = int(z.n_status), int(z.t)
+        app.kind, app.req_mode, app.req_id = int(z.kind), int(z.rmode), int(z.rid)
+        app._shown, app._shown_since, app._answered = int(z.shown), int(z.shown_since), \
+            int(z.answered)
+        app._chosen = bool(z.chosen)
+        for i, name in enumerate(kb.MESSAGES):
+            if z.seen[i]:
+                self.seen[name] += int(z.seen[i])
+        # the noise not used: the sensors' block from here on, the supply's generator put
+        # back to where it stood after the samples used
+        sens = plant.sensors
+        if self.noise is not None:
+            sens._noise, sens._next = self.noise[plant.k - int(z.noise_base):], 0
+            rng = plant.supply.rng
+            rng.bit_generator.state = self.sup_state
+            rng.standard_normal(int(z.supply_next))
+        self.noise = None
+
+    # -- running -----------------------------------------------------------------------------
+
+    def run(self, k_end: int, progress: Optional[Callable[[int, int], None]]) -> None:
+        """The loop from the nodes' tick up to ``k_end``."""
+        plant, e, app, z = self.plant, self.ecu_node, self.app, self.z
+        a, n, sens, st = plant.active, plant.n, plant.sensors, e.state
+        self.load()
+        status = kl.OK
+        report_every = max(1, n // 200)          # (run_in_process's progress calls)
+        end = min(n, k_end)
+        while z.k < end and status == kl.OK:
+            k0 = int(z.k)
+            if self.noise is None or k0 >= z.noise_base + len(self.noise):   # the next block
+                self.noise = sens.rng.standard_normal((CHUNK, 5))
+                z.noise_base = k0
+                self._draw_supply(k0, CHUNK)
+            k1 = min(end, int(z.noise_base) + len(self.noise))
+            if progress is not None:
+                k1 = min(k1, (k0 // report_every + 1) * report_every)
+            z.nlog, z.hpos, z.nreq, z.nfs = 0, 0, 0, 0
+            status = kl.run(self.za, e.E, self.M, self.F, self.fault_bits, e.RX, self.prx,
+                            e.SEC, self.sec, e.crypto, a._phis, a._flows, self.x, a._pp, a._v,
+                            a._acc, plant.zf, self.speed, self.true_grade, self.segment,
+                            self.noise, self.sup_noise, sens._std, sens._min, sens._lsb,
+                            sens._full, st.P, st.T, st.S, st.I, st.O, plant.obs, self.rows,
+                            self.hashbuf, e.ff, e.ff_first, self.reqlog, self.fslog,
+                            self.log_id, self.log_dlc, self.log_data, self.s_bytes,
+                            self.fx_rows, k1)
+            self._drain()
+            if progress is not None and status == kl.OK and (z.k % report_every == 0
+                                                             or z.k >= n):
+                progress(int(z.k), n)
+        self.put_back()
+        if status != kl.OK:
+            raise RuntimeError(f"lockstep broken at tick {plant.k}")
+
+    def _drain(self) -> None:
+        """The buffers of one call: the hashed rows, the driver's requests and what it was
+        told, the frames."""
+        z, e, app = self.z, self.ecu_node, self.app
+        row_bytes = self.hashbuf[:z.hpos].tobytes()
+        e.sha.update(row_bytes)
+        if e.hashed is not None:
+            e.hashed += row_bytes
+        for t, kind, mode in self.reqlog[:z.nreq].tolist():
+            app.log.append((t * app.dt, _KIND_NAME[kind], mode))
+        app.faults_seen += [tuple(r) for r in self.fslog[:z.nfs].tolist()]
+        if self.on_frame is not None:
+            for fid, dlc, data in zip(self.log_id[:z.nlog].tolist(),
+                                      self.log_dlc[:z.nlog].tolist(), self.log_data[:z.nlog]):
+                self.on_frame(fid, data[:dlc].tobytes())
 
 
 def run(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
         on_frame: Optional[Callable[[int, bytes], None]] = None,
-        progress: Optional[Callable[[int, int], None]] = None) -> dict[str, int]:
-    """``hil.nodes.run_in_process`` on the compiled loop (``eligible`` must hold)."""
+        progress: Optional[Callable[[int, int], None]] = None,
+        python: Iterable[tuple[int, int]] = ()) -> dict[str, int]:
+    """``hil.nodes.run_in_process`` on the compiled loop (``eligible`` must hold), Python
+    running the node objects in the spans of ``calendar`` (the injectors' and ``python``'s,
+    [start, end) in ticks)."""
     why = eligible(plant, ecu_node, app)
     if why is not None:
         raise ValueError(f"the compiled SIL loop does not cover {why}")
-    codec = plant.codec
-    M, F, fault_bits = codec.bus_tables()
-    prx, sec = _plant_receiver(plant), _secoc(codec, plant, app)
-    za = _sil_state(plant, app, on_frame is not None)
-    z = view(za)
-    a, n = plant.active, plant.n
-    x = np.array(a.x, dtype=float)
-    # the passive twin only sees the road: the whole drive at once (PlantNode.step's chunks)
-    tw = plant.twin.run_passive(plant.zf[1:n + 1])
-    for name in ("ba", "sws", "dtd", "vrel"):
-        plant.arrays["p_" + name][:n] = tw[name]
-    plant.twin_until = n
-    sens = plant.sensors
-    true_grade = np.ascontiguousarray(plant.true_grade, dtype=np.int64)
-    segment = np.ascontiguousarray(plant.timeline.segment, dtype=np.int64)
-    speed = np.ascontiguousarray(plant.timeline.speed_mps, dtype=float)
-    rows = np.zeros((n, 9), np.int64)
-    e = ecu_node
-    hashbuf = np.zeros(CHUNK * kl.ROW_BYTES, np.uint8)
-    reqlog = np.zeros((CHUNK, 3), np.int64)
-    cap = CHUNK * kl.FRAMES_PER_TICK if on_frame is not None else 1
-    log_id, log_dlc = np.zeros(cap, np.int64), np.zeros(cap, np.int64)
-    log_data = np.zeros((cap, 8), np.uint8)
-    st = ecu_node.state
-    status = kl.OK
-    report_every = max(1, n // 200)          # (run_in_process's progress calls)
-    noise = sup_noise = None
-    while z.k < n and status == kl.OK:
-        k0 = int(z.k)
-        if noise is None or k0 >= z.noise_base + CHUNK:    # the next block of noise
-            noise = sens.rng.standard_normal((CHUNK, 5))
-            first = -(-k0 // plant.p_supply) * plant.p_supply
-            sup_noise = plant.supply.rng.standard_normal(
-                len(range(first, k0 + CHUNK, plant.p_supply)))
-            z.noise_base, z.supply_next = k0, 0
-        k1 = min(n, int(z.noise_base) + CHUNK)
-        if progress is not None:
-            k1 = min(k1, (k0 // report_every + 1) * report_every)
-        z.nlog, z.hpos, z.nreq = 0, 0, 0
-        status = kl.run(za, e.E, M, F, fault_bits, e.RX, prx, e.SEC, sec, e.crypto, a._phis,
-                        a._flows, x, a._pp, a._v, a._acc, plant.zf, speed, true_grade, segment,
-                        noise, sup_noise, sens._std, sens._min, sens._lsb, sens._full, st.P,
-                        st.T, st.S, st.I, st.O, plant.obs, rows, hashbuf, e.ff, e.ff_first,
-                        reqlog, log_id, log_dlc, log_data, k1)
-        row_bytes = hashbuf[:z.hpos].tobytes()
-        ecu_node.sha.update(row_bytes)
-        if ecu_node.hashed is not None:
-            ecu_node.hashed += row_bytes
-        for t, kind, mode in reqlog[:z.nreq].tolist():
-            app.log.append((t * app.dt, _KIND_NAME[kind], mode))
-        if on_frame is not None:
-            for fid, dlc, data in zip(log_id[:z.nlog].tolist(), log_dlc[:z.nlog].tolist(),
-                                      log_data[:z.nlog]):
-                on_frame(fid, data[:dlc].tobytes())
-        if progress is not None and status == kl.OK and (z.k % report_every == 0
-                                                         or z.k >= n):
-            progress(int(z.k), n)
-    _put_back(z, x, rows, prx, sec, plant, ecu_node, app)
-    if status != kl.OK:
-        raise RuntimeError(f"lockstep broken at tick {plant.k}")
-    return {name: int(z.seen[kb.MESSAGES.index(name)]) for name in _BUS_ORDER
-            if z.seen[kb.MESSAGES.index(name)]}
-
-
-def _put_back(z, x, rows, prx, sec, plant, ecu_node, app) -> None:
-    """The nodes' state after the loop, as ``run_in_process`` leaves it (the ECU node's lives
-    in its own records, which the loop ran on)."""
-    a = plant.active
-    a.x, a.zf = x, float(z.zf)
-    a.bump_contacts += int(z.bump_contacts)
-    a.lift_off_events += int(z.lift_offs)
-    a.in_bump_contact, a.tire_lifted = bool(z.in_bump), bool(z.lifted)
-    a.current_limited_steps += int(z.limited_steps)
-    plant.k = int(z.k)
-    plant.cmd = (int(z.cmd_duty), bool(z.cmd_regen), bool(z.cmd_enable))
-    plant.cmd_tick, plant.cmd_fresh, plant.cmd_seq = int(z.cmd_tick), bool(z.cmd_fresh), \
-        int(z.cmd_seq)
-    plant.bad_cmd_frames, plant.stale_cmd_frames = int(z.bad_cmd), int(z.stale_cmd)
-    plant.fallback_ticks = int(z.fallback_ticks)     # (missed_cmds: none, or lockstep broke)
-    plant.auth_failures, plant.auth_failures_booked = int(z.auth_failures), int(z.auth_booked)
-    for node in (plant, app):
-        for name in _OWN[node.name]:
-            i = kb.MESSAGES.index(name)
-            if z.sent[i]:
-                node.tx.sent[name] += int(z.sent[i])
-                node.tx.counters[name] = int(z.ctr[i])   # (Tx keeps one for every message)
-    st, row = plant.cmd_rx, prx[0]
-    st.valid, st.good_run = bool(row["valid"]), int(row["good_run"])
-    st.last_counter, st.last_rx_tick = int(row["last_counter"]), int(row["last_rx_tick"])
-    st.faults = int(row["faults"])
-    plant.cmd_auth.latest = int(sec[kb.S_CMD_RX]["fv"])
-    plant.cmd_auth.rejected = int(sec[kb.S_CMD_RX]["rejected"])
-    app.req_sec.fv = int(sec[kb.S_REQ_TX]["fv"])
-    ecu_node.rows.frombytes(rows[:ecu_node.k].tobytes())
-    app.n_status, app.t = int(z.n_status), int(z.t)
-    app.kind, app.req_mode, app.req_id = int(z.kind), int(z.rmode), int(z.rid)
-    app._shown, app._shown_since, app._answered = int(z.shown), int(z.shown_since), \
-        int(z.answered)
-    app._chosen = bool(z.chosen)
+    n = plant.n
+    # the passive twin only sees the road: the rest of the drive at once (PlantNode.step's
+    # chunks)
+    k = plant.twin_until
+    if k < n:
+        tw = plant.twin.run_passive(plant.zf[k + 1:n + 1])
+        for name in ("ba", "sws", "dtd", "vrel"):
+            plant.arrays["p_" + name][k:n] = tw[name]
+        plant.twin_until = n
+    loop = _Loop(plant, ecu_node, app, on_frame)
+    seen: Counter = Counter()
+    for a, b in [*calendar(plant, ecu_node, app, python), (n, n)]:
+        if plant.k < a:
+            loop.run(a, progress)
+            seen.update(loop.seen)
+            loop.seen = Counter()
+        until = b
+        while plant.k < until:
+            seen.update(run_in_process(plant, ecu_node, app, on_frame, progress, until=until))
+            if _python_owes(plant, ecu_node, app):
+                until = plant.k + 1
+    # in the order a run's frames first cross the bus (tick 0), then the rest as first seen
+    order = [*_BUS_ORDER, *(m for m in seen if m not in _BUS_ORDER)]
+    return {name: seen[name] for name in order if seen[name]}

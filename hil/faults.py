@@ -53,6 +53,8 @@ INVALID_MODE = 6                # REQ_MODE 6: no such mode
 GAP_TICKS = 700                 # fault-free ticks after each fault (recovery)
 FORGED_DUTY = 0.88              # the forged commands' duty (the issue's attack)
 REPLAY_AGE_TICKS = 100          # a replayed command was recorded this many ticks earlier
+SPAN_LEAD = REPLAY_AGE_TICKS + 50   # an injector's Python ticks before a window (Injector.spans)
+SPAN_TAIL = 50                  # ... and after it
 _HUB_DROPS = re.compile(r"\(read-only\): (\d+) frames it may not send dropped")
 
 
@@ -224,6 +226,15 @@ class Injector:
     def from_file(cls, path: str, node: str, lockstep: bool = True) -> "Injector":
         data = json.loads(Path(path).read_text())
         return cls([Window(**w) for w in data["windows"]], node, lockstep)
+
+    def spans(self) -> list[tuple[int, int]]:
+        """The ticks [start, end) this injector needs the Python nodes for (the compiled SIL
+        loop runs the rest, ``hil.fastsil``): each window, from ``SPAN_LEAD`` ticks before it
+        (what it watches before: the commands a replay takes, the last VEHICLE_SPEED a
+        flood repeats) to ``SPAN_TAIL`` after (the app's time, from ECU_STATUS, lags the
+        plant's by up to a status period; the supply is set back the tick after)."""
+        return [(max(0, w.start - SPAN_LEAD), w.start + w.ticks + SPAN_TAIL)
+                for w in self.windows]
 
     def _active(self, k: int, node: str) -> Optional[Window]:
         for w in self.windows:
@@ -779,9 +790,12 @@ def _route_file(out: Path, ticks: int, dt: float) -> Path:
     return path
 
 
-def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
-    """The campaign with the three nodes in this process (the lockstep FIFO)."""
-    from hil import nodes, secoc
+def run_in_process(windows: list[Window], out: Path, seed: int = 1,
+                   compiled: bool = True) -> dict:
+    """The campaign with the three nodes in this process (the lockstep FIFO): the compiled
+    SIL loop between the windows (``hil.fastsil``; the node objects in them and at the
+    tester's reads), or (``compiled=False``) the node objects throughout."""
+    from hil import fastsil, nodes, secoc
     from hil.codec import Codec
     from hil.config import default_vehicle
     from hil.road import load_route
@@ -810,13 +824,16 @@ def run_in_process(windows: list[Window], out: Path, seed: int = 1) -> dict:
     ecu_node.tick = ticking
     crash = None
     try:
-        nodes.run_in_process(plant, ecu_node, app)
+        if compiled:
+            fastsil.run(plant, ecu_node, app, python=[(k, k + 1) for k, _ in points])
+        else:
+            nodes.run_in_process(plant, ecu_node, app)
     except Exception as exc:  # noqa: BLE001 - a crash is a finding, reported per fault
         crash = f"{type(exc).__name__}: {exc}"
     return {"ecu": ecu_node.trace(), "plant": plant.trace(),
             "applied": {**plant.inject.applied, **app.inject.applied},
             "faults_seen": app.faults_seen, "ticks": ecu_node.k, "crash": crash,
-            "dtcs": reads}
+            "dtcs": reads, "summaries": [node.summary() for node in (plant, ecu_node, app)]}
 
 
 def run_over_bus(windows: list[Window], out: Path, seed: int = 1,

@@ -750,10 +750,11 @@ def message_name(fid: int) -> str:
 
 def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
                    on_frame: Optional[Callable[[int, bytes], None]] = None,
-                   progress: Optional[Callable[[int, int], None]] = None) -> dict[str, int]:
+                   progress: Optional[Callable[[int, int], None]] = None,
+                   until: Optional[int] = None) -> dict[str, int]:
     """The lockstep protocol with the three nodes in this process: a FIFO stands in for the
-    bus (every frame goes to every other node, in the order sent). Returns the frames that
-    crossed the FIFO, per message name."""
+    bus (every frame goes to every other node, in the order sent), up to tick ``until`` (the
+    route's end by default). Returns the frames that crossed the FIFO, per message name."""
     nodes = (plant, ecu_node, app)
     queue: deque = deque()
     routes: dict = {}     # (sender, frame ID) -> the nodes that do not ignore it
@@ -776,7 +777,8 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
                     queue.extend((node, r) for r in replies)
 
     report_every = max(1, plant.n // 200)
-    while not plant.done:
+    end = plant.n if until is None else min(plant.n, until)
+    while plant.k < end:
         send(plant, plant.emit())
         while ecu_node.ready():
             send(ecu_node, ecu_node.tick())

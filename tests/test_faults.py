@@ -128,6 +128,26 @@ def test_campaign_is_the_same_in_one_process(campaign_dir, tmp_path):
     assert strip(local) == strip(rows)
 
 
+def test_in_one_process_the_compiled_loop_runs_between_the_windows(tmp_path):
+    """The in-process campaign on the compiled SIL loop, Python running the nodes in the
+    injectors' windows and at the tester's reads (``hil.fastsil``'s calendar), equals the
+    campaign on the node objects throughout: every trace, every fault touched, what the
+    driver was told, the DTCs read, the nodes' summaries (trace hash, frames, ledger)."""
+    import numpy as np
+
+    windows = faults.schedule(bus=False)
+    runs = [faults.run_in_process(windows, tmp_path, compiled=c) for c in (False, True)]
+    for key in ("applied", "faults_seen", "ticks", "crash", "dtcs", "summaries"):
+        assert runs[0][key] == runs[1][key], key
+    for node in ("ecu", "plant"):
+        assert runs[0][node].keys() == runs[1][node].keys()
+        for name, a in runs[0][node].items():
+            assert np.array_equal(a, runs[1][node][name], equal_nan=True), (node, name)
+    assert runs[1]["crash"] is None and len(runs[1]["applied"]) == len(windows)
+    assert any(kind != "none" for _, kind, _ in runs[1]["summaries"][2]["log"])
+    assert len(runs[1]["dtcs"]) > 10 and len(runs[1]["faults_seen"]) > 20
+
+
 def test_the_judge_fails_an_ecu_that_ignores_faults(tmp_path, monkeypatch):
     """Sabotage: safety-relevant faults no longer disable the bridge. The campaign must say so."""
     monkeypatch.setattr(safety, "SAFETY_RELEVANT", 0)

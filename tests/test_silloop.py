@@ -2,6 +2,7 @@
 hil/nodes.py frame by frame (``sil.run(compiled=False)``): the same report, trace, frames on
 the bus (every byte, in order) and node state afterwards; no allocation per tick."""
 
+import hashlib
 import json
 import os
 import subprocess
@@ -24,19 +25,21 @@ def _both(route, mode, seed, **kw):
     out = []
     for compiled in (False, True):
         frames, calls = [], []
+        record = [] if kw.get("fixed_point") else None      # (the C parity record)
         rep, tr = sil.run(CFG if "cfg" not in kw else kw["cfg"], load_route(route), mode, seed,
                           key=KEY, compiled=compiled,
                           on_frame=lambda fid, data: frames.append((fid, data)),
                           progress=lambda done, total: calls.append((done, total)),
-                          **{k: v for k, v in kw.items() if k != "cfg"})
-        out.append((rep, tr, frames, calls))
+                          fx_record=record, **{k: v for k, v in kw.items() if k != "cfg"})
+        out.append((rep, tr, frames, calls, record))
     return out
 
 
 def _same(a, b):
-    (ra, ta, fa, pa), (rb, tb, fb, pb) = a, b
+    (ra, ta, fa, pa, xa), (rb, tb, fb, pb, xb) = a, b
     assert json.dumps(ra, default=str) == json.dumps(rb, default=str)
     assert fa == fb
+    assert xa == xb and (xa is None or len(xa) == len(ta.segment))
     assert pa == pb and len(pa) >= 200          # (progress: the same calls)
     assert ta.arrays.keys() == tb.arrays.keys()
     for name in ta.arrays:
@@ -50,6 +53,11 @@ def _same(a, b):
     ("comfort", {"duration_s": 4.0}),                     # the fixed policy: chooses, refuses
     ("auto", {"duration_s": 4.0, "policy": "refuse"}),
     ("auto", {"duration_s": 5.0, "noise_step": (2.0, 40.0)}),   # faults, road holding
+    # a driver script (Python's app sends its entries, the calendar's spans): a choice, an
+    # acceptance of what is recommended then, two at the same time, a refusal
+    ("auto", {"duration_s": 6.0, "policy": "script",
+              "script": [(0.5, "choose", 2), (1.2345, "accept", None), (3.0, "choose", 4),
+                         (3.0, "choose", 3), (4.05, "refuse", None)]}),
 ])
 def test_compiled_loop_is_the_nodes_frame_by_frame(mode, kw):
     a, b = _both("full_road_section", mode, 3, **kw)
@@ -59,6 +67,8 @@ def test_compiled_loop_is_the_nodes_frame_by_frame(mode, kw):
         assert b[0]["driver"]["requests"] == {"accept": 1}
     if mode == "comfort":                   # the fixed policy chose its mode
         assert b[0]["driver"]["requests"]["choose"] == 1
+    if kw.get("policy") == "script":        # every entry sent
+        assert sum(b[0]["driver"]["requests"].values()) == 5
 
 
 def test_noise_step_sets_faults_the_same_way():
@@ -75,31 +85,56 @@ def test_other_vehicle_and_route():
     _same(a, b)
 
 
-def test_nodes_state_after_the_loop():
-    """The node objects hold what run_in_process leaves in them (a caller reads them)."""
+def _upcoming(sens, m: int) -> list:
+    """The sensors' next ``m`` noise values: what is left of their block, then their
+    generator's (the loop draws larger blocks: where the generator stands differs)."""
+    left = sens._noise[sens._next:].ravel()
+    return np.concatenate([left, sens.rng.standard_normal(m)])[:m].tolist()
+
+
+@pytest.mark.parametrize("n,python", [
+    (2500, []),
+    # Python's spans of the calendar: at the start, inside a noise block of 256 (and a supply
+    # period), two that touch, one across the loop's chunk of 16,384, one to the end
+    (17000, [(0, 3), (1001, 1057), (1057, 1060), (16380, 16390), (16900, 17000)]),
+])
+def test_nodes_state_after_the_loop(n, python):
+    """The node objects hold what run_in_process leaves in them (a caller reads them), also
+    when Python runs them in spans of the calendar and the loop takes them over again."""
     states = []
     for compiled in (False, True):
         codec = Codec()
         p = sil.ecu_params(CFG, "auto")
-        plant = PlantNode(CFG, load_route("city"), 2, codec, key=KEY)
-        plant.n = 2500
+        plant = PlantNode(CFG, load_route("city"), 2, codec, key=KEY,
+                          noise_step=(1.0, 30.0) if python else None)
+        plant.n = n
         ecu_node = EcuNode(p, codec, lockstep=True, key=KEY)
         app = sil.app_node(codec, "auto", p.dt_s, key=KEY)
+        frames, calls = [], []
+        kw = {"on_frame": lambda fid, data: frames.append((fid, data)),
+              "progress": lambda done, total: calls.append(done)}
         if compiled:
             assert fastsil.eligible(plant, ecu_node, app) is None
-            bus = fastsil.run(plant, ecu_node, app)
+            bus = fastsil.run(plant, ecu_node, app, python=python, **kw)
         else:
             from hil.nodes import run_in_process
-            bus = run_in_process(plant, ecu_node, app)
+            bus = run_in_process(plant, ecu_node, app, **kw)
+        if python:
+            assert app.faults_seen                  # (the driver was told of a fault)
         states.append(json.dumps({
+            "frames": hashlib.sha256(repr(frames).encode()).hexdigest(), "progress": calls,
+            "twin": [plant.arrays[k].tolist() for k in sorted(plant.arrays)],
+            "obs": plant.obs.tobytes().hex(), "rows": ecu_node.rows.tobytes().hex(),
+            "noise": [_upcoming(plant.sensors, 3000), plant.supply.rng.standard_normal(3).tolist()],
+            "ledger": plant.active._acc.tolist(), "log": app.log,
             "bus": bus, "plant": plant.summary(), "ecu": ecu_node.summary(),
             "app": app.summary(), "cmd": [plant.cmd, plant.cmd_tick, plant.cmd_seq],
-            "x": plant.active.x.tolist(), "ecu": ecu_node.E.tobytes().hex(),
+            "x": plant.active.x.tolist(), "ecu_record": ecu_node.E.tobytes().hex(),
             "ecu_rx": ecu_node.RX.tobytes().hex(), "ecu_sec": ecu_node.SEC.tobytes().hex(),
             "ff": [ecu_node.ff.tolist(), ecu_node.ff_first.tolist()],
             "fv": [app.req_sec.fv, plant.cmd_auth.latest, plant.cmd_auth.rejected],
             "counters": [plant.tx.counters, app.tx.counters], "rx": vars(plant.cmd_rx),
-            "ecu_k": ecu_node.k, "app": [app.t, app.kind, app.req_id, app._shown]},
+            "ecu_k": ecu_node.k, "app_state": [app.t, app.kind, app.req_id, app._shown]},
             default=str))
     assert states[0] == states[1]
 
@@ -109,8 +144,8 @@ def test_runs_the_loop_does_not_cover_are_named():
     p = sil.ecu_params(CFG, "auto")
     plant = PlantNode(CFG, load_route("city"), 2, codec, key=KEY)
     ecu_node = EcuNode(p, codec, key=KEY)
-    app = AppNode(codec, "script", script=[(0.5, "choose", 2)], key=KEY)
-    assert "script" in fastsil.eligible(plant, ecu_node, app)
+    app = AppNode(codec, "interactive", key=KEY)
+    assert "interactive" in fastsil.eligible(plant, ecu_node, app)
     with pytest.raises(ValueError, match="does not cover"):
         fastsil.run(plant, ecu_node, app)
     auto = sil.app_node(codec, "auto", p.dt_s, key=KEY)

@@ -1,6 +1,7 @@
 """The SIL's lockstep loop compiled (issue 37): the plant, ECU and driver-app nodes of
 ``hil.nodes`` and the bus between them as one numba function that runs tick after tick until
-the next event for Python (``hil.fastsil``: a block of sensor noise, progress), the same
+the next event of Python's calendar (``hil.fastsil``: a block of sensor noise, progress, a
+fault campaign's window), the same
 frames in the same order as ``hil.nodes.run_in_process`` and the same bytes
 (``tests/test_silloop.py`` holds the two together; ``run_in_process`` stays the path of the
 runs this loop does not cover: ``hil.fastsil.eligible``).
@@ -17,7 +18,7 @@ State: the record ``Z`` (``SIL``: the plant's and the app's scalars, their trans
 the frames sent and seen per message) and the ECU node's record; the tables of
 ``hil.kernels.bus``; the plant's arrays (``hil.plant.QuarterCarPlant``'s); the ECU's records
 (``firmware``); the per-tick outputs (the plant's observations, the ECU's trace rows,
-the hashed rows, the frame log, the driver's requests).
+the hashed rows, the frame log, the driver's requests, what the driver was told).
 """
 
 from __future__ import annotations
@@ -34,12 +35,14 @@ from hil.kernels import secoc as ks
 from hil.kernels.bus import (M_CMD, M_ENERGY, M_REC, M_REQ, M_SENSORS, M_SPEED,
                              M_STATUS, M_SUPPLY, M_TRUTH, NMSG, S_CMD_RX, S_REQ_TX, U_DRAWN,
                              U_DUTY, U_ENABLE, U_ID, U_KIND, U_MODE, U_REC, U_REC_ACTIVE,
-                             U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ, U_SPEED,
-                             U_STORED, U_SUPPLY, U_TRUE_DTD, U_TRUE_GRADE, U_TRUE_ROAD,
-                             U_TRUE_SWS)
+                             U_FAULTS, U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ,
+                             U_SPEED, U_ST_REASON, U_STORED, U_SUPPLY, U_TRUE_DTD,
+                             U_TRUE_GRADE, U_TRUE_ROAD, U_TRUE_SWS)
 from hil.kernels.sensors import quantise_into, to_counts
 
-POLICIES = ("auto", "fixed", "refuse")                   # the driver policies compiled here
+# the driver policies here: a script's decisions are Python's (the calendar's spans)
+POLICIES = ("auto", "fixed", "refuse", "script")
+P_SCRIPT = 3
 ROW_BYTES = ken.ROW_BYTES
 FRAMES_PER_TICK = 12     # at most, for the frame log's size
 OK, LOCKSTEP_BROKEN = 0, 1
@@ -61,10 +64,17 @@ SIL = np.dtype([
     ("policy", "i8"), ("app_mode", "i8"), ("reaction", "i8"), ("n_status", "i8"),
     ("t", "i8"), ("kind", "i8"), ("rmode", "i8"), ("rid", "i8"), ("shown", "i8"),
     ("shown_since", "i8"), ("answered", "i8"), ("chosen", "i8"), ("app_p_status", "i8"),
+    ("fs_word", "i8"), ("fs_reason", "i8"),      # what the driver was last told (faults_seen)
+    # a fault campaign's plant: its receiver of every command on the wire runs too
+    ("wire", "i8"),
+    # the C parity record: the ECU state's bytes of the fixed-point hand-over, per tick
+    ("fx_on", "i8"), ("fx_off", "i8"),
     # the bus: the plant's and app's COUNTERs and frames sent, frames seen, per message;
     # the buffers' fill
     ("ctr", "i8", (NMSG,)), ("sent", "i8", (NMSG,)), ("seen", "i8", (NMSG,)),
-    ("log_on", "i8"), ("nlog", "i8"), ("hpos", "i8"), ("nreq", "i8")])
+    ("log_on", "i8"), ("nlog", "i8"), ("hpos", "i8"), ("nreq", "i8"), ("nfs", "i8")])
+S_CMD_WIRE = 4           # the SIL's SecOC table: hil.kernels.bus' rows, then the wire's verifier
+R_WIRE = 1               # the plant's receivers: ACTUATOR_CMD's, then the wire's
 
 
 @njit
@@ -93,8 +103,11 @@ def _app_send(Z, kind, mode, reqlog) -> None:
 
 @njit
 def _app_decide(Z, rec, active, reason, reqlog) -> None:
-    """``AppNode._decide`` for the policies ``auto``, ``fixed`` and ``refuse``."""
+    """``AppNode._decide`` for the policies ``auto``, ``fixed`` and ``refuse`` (``script``:
+    no entry of the script is due outside Python's spans)."""
     t = Z.t
+    if Z.policy == P_SCRIPT:
+        return
     if Z.policy == 1 and Z.chosen == 0:
         Z.chosen = 1
         _app_send(Z, fp.REQ_CHOOSE, Z.app_mode, reqlog)
@@ -113,10 +126,14 @@ def _app_decide(Z, rec, active, reason, reqlog) -> None:
 
 @njit
 def _plant_cmd(Z, M, F, PRX, SEC, buf, crypto) -> None:
-    """``PlantNode._receive_cmd`` (no fault campaign): SecOC first, then the frame checks; a
-    valid command is applied, and ends the tick if it answers this tick's sensor frame."""
+    """``PlantNode._receive_cmd`` outside a fault's window: SecOC first, then the frame
+    checks; a valid command is applied, and ends the tick if it answers this tick's sensor
+    frame. In a fault campaign (``Z.wire``) the receiver of every command on the wire judges
+    it first (``cmd_rx_wire``, ``cmd_auth_wire``: the windows that lose commands read it)."""
     m = M[M_CMD]
     ctx, msg, tag16, length = crypto
+    if Z.wire != 0 and not ks.forged(m, SEC[S_CMD_WIRE], buf, m.dlc, ctx, msg, tag16, length):
+        kf.receive(F, m, PRX[R_WIRE], buf, m.dlc, Z.k)
     if ks.forged(m, SEC[S_CMD_RX], buf, m.dlc, ctx, msg, tag16, length):
         Z.auth_failures += 1
         return
@@ -136,17 +153,46 @@ def _plant_cmd(Z, M, F, PRX, SEC, buf, crypto) -> None:
 
 
 @njit
-def _app_recommend(Z, M, F, buf, reqlog, scratch_rx) -> None:
-    """``AppNode.on_frame`` for MODE_RECOMMEND: decoded (a one-off decode: DLC, CHECKSUM,
-    ranges), decided; the answer is built by the caller."""
-    m = M[M_REC]
+def _app_decode(m, F, buf, scratch_rx) -> bool:
+    """The app's decode of a frame (``Codec.decode``: a one-off check of DLC, CHECKSUM and
+    ranges, no COUNTER state)."""
     rx = scratch_rx[0]
     rx.last_counter = -1
     rx.last_rx_tick = -1
-    if kf.receive(F, m, rx, buf, m.dlc, 0):
+    return kf.receive(F, m, rx, buf, m.dlc, 0)
+
+
+@njit
+def _app_recommend(Z, M, F, buf, reqlog, scratch_rx) -> None:
+    """``AppNode.on_frame`` for MODE_RECOMMEND: decoded, decided; the answer is built by the
+    caller."""
+    m = M[M_REC]
+    if _app_decode(m, F, buf, scratch_rx):
         w = kf.load(buf, m.dlc)
         _app_decide(Z, kf.get(w, F[U_REC]), kf.get(w, F[U_REC_ACTIVE]),
                     kf.get(w, F[U_REC_REASON]), reqlog)
+
+
+@njit
+def _app_status(Z, M, F, FAULT_BITS, buf, fslog, scratch_rx) -> None:
+    """``AppNode.on_frame`` for ECU_STATUS: the app's clock, and what the driver is told
+    (``faults_seen``: the tick, fault word and REASON at each change)."""
+    Z.n_status += 1
+    Z.t = (Z.n_status - 1) * Z.app_p_status
+    m = M[M_STATUS]
+    if _app_decode(m, F, buf, scratch_rx):
+        w = kf.load(buf, m.dlc)
+        word = 0
+        for j in range(len(FAULT_BITS)):
+            if kf.get(w, F[U_FAULTS + j]) != 0:
+                word |= FAULT_BITS[j]
+        reason = kf.get(w, F[U_ST_REASON])
+        if word != Z.fs_word or reason != Z.fs_reason:
+            Z.fs_word = word
+            Z.fs_reason = reason
+            j = Z.nfs
+            fslog[j, 0], fslog[j, 1], fslog[j, 2] = Z.t, word, reason
+            Z.nfs = j + 1
 
 
 @njit
@@ -160,11 +206,14 @@ def _send(Z, mi) -> None:
 @njit
 def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, pp, v, acc, zf,
         speed_mps, true_grade, segment, noise, sup_noise, std, rmin, lsb, full, P, T, S, I, O,
-        obs, rows, hashbuf, ff, ff_first, reqlog, log_id, log_dlc, log_data, k_end):
+        obs, rows, hashbuf, ff, ff_first, reqlog, fslog, log_id, log_dlc, log_data, s_bytes,
+        fx_rows, k_end):
     """Run the lockstep ticks from ``Z.k`` up to ``k_end`` (or the route's end). ``Ea``, the
     ECU node's state with its receivers ``ERX`` and SecOC rows ``ESEC`` and its frame faults
     ``ff``/``ff_first`` (``hil.kernels.ecunode``); ``PRX``, the plant's receiver of
-    ACTUATOR_CMD; ``SEC``, the plant's and the app's SecOC rows. Returns ``OK`` or
+    ACTUATOR_CMD; ``SEC``, the plant's and the app's SecOC rows; ``s_bytes``, the ECU
+    state ``S`` as bytes, whose fixed-point hand-over goes to ``fx_rows`` per tick
+    (``Z.fx_on``, the C parity record). Returns ``OK`` or
     ``LOCKSTEP_BROKEN`` (a tick whose command did not come: ``Z.k`` is that tick)."""
     Z = Za[0]
     E = Ea[0]
@@ -238,12 +287,14 @@ def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, p
                                 got == ken.RX_SAMPLE, E.counts[0], E.counts[1], E.counts[2],
                                 E.counts[3], out_mi, out)
         held = awaiting > 0
+        if Z.fx_on != 0:
+            for i in range(fx_rows.shape[1]):
+                fx_rows[ek, i] = s_bytes[Z.fx_off + i]
         for j in range(1, nf):
             mi = out_mi[j]
             _log(Z, mi, M[mi], out[j], log_id, log_dlc, log_data)
-            if mi == M_STATUS:                              # (the app's clock)
-                Z.n_status += 1
-                Z.t = (Z.n_status - 1) * Z.app_p_status
+            if mi == M_STATUS:
+                _app_status(Z, M, F, FAULT_BITS, out[j], fslog, scratch_rx)
             elif mi == M_REC:
                 for i in range(8):
                     buf[i] = out[j, i]
