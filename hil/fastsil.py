@@ -14,9 +14,10 @@ then resumes:
   the ticks (``run_in_process``), from the state the loop wrote back into them; the loop
   loads it again after the span;
 - a driver script's entries: Python's app sends them (``calendar``).
-The same bytes either way (``tests/test_silloop.py``). The C parity record (the fixed-point hand-over of every tick) is copied in the loop. A person
-driving (``interactive``, ``web``), the app's callbacks, a run without SecOC, or a realtime
-or diagnosed ECU node take ``hil.nodes.run_in_process`` instead.
+The same bytes either way (``tests/test_silloop.py``). The C parity record (the fixed-point
+hand-over of every tick) is copied in the loop. A person driving (``interactive``, ``web``),
+the app's callbacks, a run without SecOC, or a realtime or diagnosed ECU node take
+``hil.nodes.run_in_process`` instead.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels import silloop as kl
-from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode, message_name, run_in_process
+from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode, run_in_process
 
 CHUNK = 16384            # ticks between Python's turns (a multiple of the noise block, 256)
 _OWN = {"PLANT": ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS",

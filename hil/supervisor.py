@@ -446,14 +446,19 @@ def run(args, on_bus=None) -> int:
         _shut_down(nodes, logger, log_bus, hub)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    logs = _copies(logger, formats, start_us, say)
-    if logs is None and not code:
-        code, reason = EXIT_NODE, "the bus log could not be converted"
-    if code:
-        _partial_report(out, cfg, route, args, n, dt, logger, reason)
-        return code
-    return _report(out, cfg, route, args, n, dt, summaries, logger, time.monotonic() - t_start,
-                   spec, logs)
+    try:
+        logs = _copies(logger, formats, start_us, say)
+        if logs is None and not code:
+            code, reason = EXIT_NODE, "the bus log could not be converted"
+        if code:
+            _partial_report(out, cfg, route, args, n, dt, logger, reason)
+            return code
+        return _report(out, cfg, route, args, n, dt, summaries, logger,
+                       time.monotonic() - t_start, spec, logs)
+    except KeyboardInterrupt:     # (Ctrl-C once the nodes are down: the report is not whole)
+        say(f"interrupted while writing the report: the report and the log copies in {out} "
+            "are incomplete (bus.log was flushed)")
+        return code or EXIT_INTERRUPTED
 
 
 HUB_SECRET_FILE = "hub.secret"

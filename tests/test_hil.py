@@ -255,7 +255,9 @@ def test_sigterm_and_sighup_stop_the_run_like_ctrl_c(tmp_path, sig, code):
 
 
 def test_a_second_run_on_the_same_out_refuses(tmp_path):
-    sup, _ = _start_and_wait_for_nodes(tmp_path)
+    # (a route that outlasts the two refusals: the override route can end in lockstep before
+    # them on a fast bench, and then SIGINT found a finished run)
+    sup, _ = _start_and_wait_for_nodes(tmp_path, "--route", "full_road_section")
     try:
         for cmd in (["run", "--duration", "1"], ["sim", "--duration", "1"]):
             proc = subprocess.run([sys.executable, "-m", "hil", *cmd, "--out", str(tmp_path)],
