@@ -417,7 +417,6 @@ class Ecu:
         (``records``: an array of that record)."""
         return [fx_entry(f) for f in records]
 
-
     def reset(self) -> None:
         """ECU reset (UDS 0x11): the control state starts again, the DTC memory stays
         (non-volatile) and a new operation cycle begins."""
