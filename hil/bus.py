@@ -26,6 +26,7 @@ from urllib.parse import urlparse
 
 import can
 
+from hil import wsframe
 from hil.auth import SECRET_ENV, credentials
 
 LOOPBACK = "127.0.0.1"
@@ -208,14 +209,6 @@ def _no_delay(bus: can.BusABC) -> None:
             pass
 
 
-def _masked(data, mask: bytes) -> bytes:
-    n = len(data)
-    if not n:
-        return b""
-    key = (mask * (n // 4 + 1))[:n]
-    return (int.from_bytes(data, "big") ^ int.from_bytes(key, "big")).to_bytes(n, "big")
-
-
 def fast_remote_client() -> None:
     """Make can_remote's client WebSocket (python-can-remote 0.3.0) cheaper per frame, same
     bytes on the wire: a send masks the payload with one integer XOR instead of a Python loop
@@ -228,19 +221,7 @@ def fast_remote_client() -> None:
         return
 
     def send_frame(self, opcode, data=b""):
-        n = len(data)
-        bit = 0x80 if self.mask else 0
-        if n <= 125:
-            head = bytes((0x80 | opcode, bit | n))
-        elif n <= 0xFFFF:
-            head = bytes((0x80 | opcode, bit | 126)) + n.to_bytes(2, "big")
-        else:
-            head = bytes((0x80 | opcode, bit | 127)) + n.to_bytes(8, "big")
-        if self.mask:
-            mask = os.urandom(4)
-            frame = head + mask + _masked(data, mask)
-        else:
-            frame = head + bytes(data)
+        frame = wsframe.frame(opcode, data, os.urandom(4) if self.mask else None)
         with self._send_lock:
             if not self.closed:
                 self.socket.sendall(frame)
@@ -255,22 +236,13 @@ def fast_remote_client() -> None:
         return buf
 
     def read_frame(self):
-        buf = _need(self, 2)
-        b1, b2 = buf[0], buf[1]
-        length, pos = b2 & 0x7F, 2
-        if length == 126:
-            length, pos = int.from_bytes(_need(self, 4)[2:4], "big"), 4
-        elif length == 127:
-            length, pos = int.from_bytes(_need(self, 10)[2:10], "big"), 10
-        masked = b2 & 0x80
-        end = pos + (4 if masked else 0) + length
+        pos = wsframe.header_size(_need(self, 2)[1])
+        opcode, length, mask = wsframe.header(_need(self, pos))
+        end = pos + length
         buf = _need(self, end)
-        if masked:
-            data = bytearray(_masked(bytes(buf[pos + 4:end]), bytes(buf[pos:pos + 4])))
-        else:
-            data = bytearray(buf[pos:end])
+        data = bytearray(wsframe.xor(bytes(buf[pos:end]), mask) if mask else buf[pos:end])
         del buf[:end]
-        return b1 & 0xF, data
+        return opcode, data
 
     def wait(self, timeout=None):
         if self.__dict__.get("_rbuf"):

@@ -56,20 +56,10 @@ from pathlib import Path
 from typing import Any, Iterable, Optional
 
 from calib.errors import ConfigError
+from hil.acceptance import GRADE_MODE, RELATIVE_KEY, violations
 
 VEHICLE_KEYS = ("sprung_mass_kg", "unsprung_mass_kg", "spring_stiffness_n_per_m",
                 "damping_n_s_per_m", "tire_stiffness_n_per_m")
-# the firmware issue's SIL acceptance (tests/test_sil_acceptance.py), by the mode of a segment
-ACCEPTANCE = {"comfort": {"ba": 0.85, "sws": 1.0, "dtd": 1.02},
-              "safety": {"dtd": 0.90, "ba": 1.0},
-              "comprehensive": {"max": 1.0, "sum_eq43": 1.05}}
-# "relative" acceptance: these bounds move with the vehicle's own limit (the default car's
-# limits are 0.788 and 0.844: a vehicle whose own limit is above 0.85 or 0.90 could not pass
-# the absolute bound with any controller); the others bound ratios to passive, or are relative
-# already (sum_eq43)
-RELATIVE_KEY = {"comfort": "ba", "safety": "dtd"}
-# the mode the ECU drives on each grade in auto (firmware.modes.GRADE_TO_MODE)
-GRADE_MODE = {"A": "regen", "B": "comfort", "C": "safety", "D": "comprehensive"}
 MIXED = "mixed"            # a segment driven in more than one mode (campaign._driven)
 DRIVEN_SHARE = 0.95        # ... for less than this share of its window in its main mode
 
@@ -433,18 +423,14 @@ def _judge(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict
     row.update(limit_name=name, limit_value=limit, gap=value - limit)
     why = []
     if acceptance:
-        acc = dict(ACCEPTANCE[driven])
+        raised = None
         if acceptance == "relative" and driven in RELATIVE_KEY:
             # the same margin above this vehicle's limit as above the default car's
             from hil.config import default_vehicle
 
-            acc[RELATIVE_KEY[driven]] += limit - _limits(default_vehicle().vehicle, rs,
-                                                         route)[driven]
-        for key, bound in acc.items():
-            got = {"max": max(r.values()), "sum_eq43": sum(r.values()) / limit}.get(key,
-                                                                                  r.get(key))
-            if got > bound:
-                why.append(f"{key} {got:.3f} > {bound:.3f}")
+            raised = {RELATIVE_KEY[driven]: limit - _limits(default_vehicle().vehicle, rs,
+                                                            route)[driven]}
+        why = violations(driven, r, limit, raised)
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
 

@@ -719,7 +719,7 @@ def _malformed_hub_message(url: str) -> None:
     import socket
     from urllib.parse import urlparse
 
-    from hil.hub import _TEXT, ws_frame
+    from hil import wsframe
 
     u = urlparse(url)
     with socket.create_connection((u.hostname, u.port), timeout=2.0) as sock:
@@ -729,7 +729,7 @@ def _malformed_hub_message(url: str) -> None:
         for event in ({"type": "bus_request", "payload": {"config": {}}},
                       {"type": "message", "payload": {"arbitration_id": ID["ACTUATOR_CMD"],
                                                       "dlc": 300, "data": [1]}}):
-            sock.sendall(ws_frame(_TEXT, json.dumps(event).encode()))
+            sock.sendall(wsframe.frame(wsframe.TEXT, json.dumps(event).encode()))
         try:
             while sock.recv(4096):
                 pass

@@ -41,8 +41,6 @@ started by hand without a secret lets every client send, and says so.
 from __future__ import annotations
 
 import argparse
-import base64
-import hashlib
 import hmac
 import json
 import selectors
@@ -54,6 +52,7 @@ import time
 from typing import Optional
 
 from hil import auth
+from hil import wsframe as ws
 
 LOOPBACK = "127.0.0.1"
 CHANNEL_INFO = "hil.hub broadcast relay"
@@ -65,36 +64,11 @@ RATE_LIMIT_FPS = 100_000            # frames per second one client may send (pla
 MAX_DATA = {False: 8, True: 64}     # data bytes of a classic / an FD frame
 FD_LENGTHS = frozenset((*range(9), 12, 16, 20, 24, 32, 48, 64))
 
-_WS_GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
-_TEXT, _BINARY, _CLOSE, _PING, _PONG = 0x1, 0x2, 0x8, 0x9, 0xA
+_TEXT, _BINARY, _CLOSE, _PING, _PONG = ws.TEXT, ws.BINARY, ws.CLOSE, ws.PING, ws.PONG
 _BIN_MSG = struct.Struct(">dIBB")   # can_remote: timestamp, arbitration ID, DLC, flags
 _BIN_TYPE = 1
 IS_EXTENDED_ID, IS_REMOTE_FRAME, IS_ERROR_FRAME, IS_FD, IS_BRS, IS_ESI = (
     0x1, 0x2, 0x4, 0x8, 0x10, 0x20)
-
-
-def accept_key(key: str) -> str:
-    return base64.b64encode(hashlib.sha1(key.encode("ascii") + _WS_GUID).digest()).decode()
-
-
-def ws_frame(opcode: int, payload: bytes) -> bytes:
-    """A server-to-client WebSocket frame (FIN, unmasked)."""
-    n = len(payload)
-    if n <= 125:
-        head = bytes((0x80 | opcode, n))
-    elif n <= 0xFFFF:
-        head = bytes((0x80 | opcode, 126)) + n.to_bytes(2, "big")
-    else:
-        head = bytes((0x80 | opcode, 127)) + n.to_bytes(8, "big")
-    return head + payload
-
-
-def _unmask(data: bytes, mask: bytes) -> bytes:
-    n = len(data)
-    if not n:
-        return b""
-    key = (mask * (n // 4 + 1))[:n]
-    return (int.from_bytes(data, "big") ^ int.from_bytes(key, "big")).to_bytes(n, "big")
 
 
 class Frame:
@@ -106,7 +80,7 @@ class Frame:
         self.arb_id, self.dlc, self.flags, self.data = arb_id, dlc, flags, data
 
     def binary(self, timestamp: float) -> bytes:
-        return ws_frame(_BINARY, bytes((_BIN_TYPE,))
+        return ws.frame(_BINARY, bytes((_BIN_TYPE,))
                         + _BIN_MSG.pack(timestamp, self.arb_id, self.dlc, self.flags)
                         + self.data)
 
@@ -120,7 +94,7 @@ class Frame:
         if f & IS_FD:
             payload.update(is_fd=True, bitrate_switch=bool(f & IS_BRS),
                            error_state_indicator=bool(f & IS_ESI))
-        return ws_frame(_TEXT, json.dumps({"type": "message", "payload": payload}).encode())
+        return ws.frame(_TEXT, json.dumps({"type": "message", "payload": payload}).encode())
 
 
 class BadMessage(ValueError):
@@ -348,7 +322,7 @@ class HubServer:
                 self.sel.modify(c.sock, selectors.EVENT_READ, c)
 
     def _event(self, c: Client, kind: str, payload) -> None:
-        self._send(c, ws_frame(_TEXT, json.dumps({"type": kind, "payload": payload}).encode()))
+        self._send(c, ws.frame(_TEXT, json.dumps({"type": kind, "payload": payload}).encode()))
 
     # -- input ---------------------------------------------------------------------------
     def _read(self, c: Client) -> None:
@@ -395,39 +369,26 @@ class HubServer:
         proto = "can.binary+json.v1" if c.binary else "can.json.v1"
         self._send(c, ("HTTP/1.1 101 Switching Protocols\r\nUpgrade: WebSocket\r\n"
                        "Connection: Upgrade\r\n"
-                       f"Sec-WebSocket-Accept: {accept_key(key)}\r\n"
+                       f"Sec-WebSocket-Accept: {ws.accept_key(key)}\r\n"
                        f"Sec-WebSocket-Protocol: {proto}\r\n\r\n").encode())
         c.state = "request"
 
     def _frames(self, c: Client) -> None:
         buf = c.inbuf
         while len(buf) >= 2 and c in self.clients:
-            b1, b2 = buf[0], buf[1]
-            n = b2 & 0x7F
-            pos = 2
-            if n == 126:
-                if len(buf) < 4:
-                    return
-                n = int.from_bytes(buf[2:4], "big")
-                pos = 4
-            elif n == 127:
-                if len(buf) < 10:
-                    return
-                n = int.from_bytes(buf[2:10], "big")
-                pos = 10
+            pos = ws.header_size(buf[1])
+            if len(buf) < pos:
+                return
+            opcode, n, mask = ws.header(buf)
             if n > MAX_MESSAGE:
                 self._reject(c, f"a {n}-byte message (at most {MAX_MESSAGE})")
                 return
-            masked = b2 & 0x80
-            need = pos + (4 if masked else 0) + n
+            need = pos + n
             if len(buf) < need:
                 return
-            if masked:
-                payload = _unmask(bytes(buf[pos + 4:need]), bytes(buf[pos:pos + 4]))
-            else:
-                payload = bytes(buf[pos:need])
+            payload = ws.xor(bytes(buf[pos:need]), mask) if mask else bytes(buf[pos:need])
             del buf[:need]
-            self._message(c, b1 & 0x0F, payload)
+            self._message(c, opcode, payload)
 
     def _message(self, c: Client, opcode: int, payload: bytes) -> None:
         if opcode == _BINARY:
@@ -480,9 +441,9 @@ class HubServer:
                 self._event(c, "error", f"{kind!r} is not supported by this hub")
             return
         if opcode == _PING:
-            self._send(c, ws_frame(_PONG, payload))
+            self._send(c, ws.frame(_PONG, payload))
         elif opcode == _CLOSE:
-            self._send(c, ws_frame(_CLOSE, payload[:2]))
+            self._send(c, ws.frame(_CLOSE, payload[:2]))
             c.closing = True
             try:
                 c.sock.shutdown(socket.SHUT_RD)

@@ -167,6 +167,25 @@ def test_fast_client_framing_is_the_protocol():
             sock.close()
 
 
+def test_websocket_framing_round_trips_at_every_length_form():
+    """hil.wsframe, the hub's and the clients' one framing: a frame parses back to its opcode
+    and payload, masked or not, at the 7-bit, 16-bit and 64-bit length forms' edges; the
+    accept key is RFC 6455's example."""
+    from hil import wsframe
+
+    for n in (0, 1, 125, 126, 0xFFFF, 0x10000):
+        payload = bytes(i % 251 for i in range(n))
+        for mask in (None, b"\x01\x80\xfe\x7f"):
+            f = wsframe.frame(wsframe.BINARY, payload, mask)
+            pos = wsframe.header_size(f[1])
+            opcode, length, key = wsframe.header(f)
+            assert (opcode, length, key) == (wsframe.BINARY, n, mask) and len(f) == pos + n
+            body = f[pos:]
+            assert (wsframe.xor(body, key) if key else body) == payload
+            assert mask is None or n == 0 or body != payload
+    assert wsframe.accept_key("dGhlIHNhbXBsZSBub25jZQ==") == "s3pPLMBiTxaQ9kYGzzhZRbK+xOo="
+
+
 def test_hub_refuses_plain_http_and_survives_garbage():
     import socket
 

@@ -17,7 +17,7 @@ from calib.errors import ConfigError
 from hil import campaign as cp
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("campaign")]
+pytestmark = pytest.mark.xdist_group("campaign")   # (the tests that run campaigns: slow)
 
 SMALL = """
 [campaign]
@@ -87,6 +87,7 @@ def test_the_matrix_expands_and_case_ids_are_stable(tmp_path):
         [cp.case_id(c) for c in camp.cases]
 
 
+@pytest.mark.slow
 def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_path):
     """Two workers started as separate processes on 127.0.0.1 under a dask scheduler, and
     a LocalCluster: the same rows; each case's trace is the one a plain ``hil sim`` (or,
@@ -113,6 +114,7 @@ def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_pa
             assert json.loads(res.stdout)["trace_sha256"] == row["trace_sha256"]
 
 
+@pytest.mark.slow
 def test_a_killed_worker_loses_no_case_and_a_rerun_skips_what_is_done(tmp_path):
     path = write(tmp_path, duration=8, seeds="[1, 2, 3, 4]")
     out = tmp_path / "run"
@@ -140,6 +142,7 @@ def test_a_killed_worker_loses_no_case_and_a_rerun_skips_what_is_done(tmp_path):
     assert rep["software_versions"] == {cp.software_version(): 8}
 
 
+@pytest.mark.slow
 def test_a_database_of_other_software_is_not_resumed_and_fails_the_report(tmp_path):
     """Each case records the software that ran it (the ECU's version and the digest of the
     packages' sources); resuming a database that other code filled would mix two programs'
@@ -180,6 +183,7 @@ def _count(db: Path) -> int:
         return 0
 
 
+@pytest.mark.slow
 def test_the_report_names_the_worst_cases_and_the_limits(tmp_path):
     path = write(tmp_path, duration=40, seeds="[1]")
     proc = hil("campaign", str(path), "--workers", "2", "--out", str(tmp_path / "r"), "--json")

@@ -36,10 +36,15 @@ def test_safety_checks_never_raise(frame_id, data, ticks):
     spec = safety.FrameSpec(**{**CODEC.specs[frame_id].__dict__, "timeout_ticks": 10,
                                "recover_frames": 3})
     rx = safety.RxState()
+    intact = len(data) == spec.dlc and (spec.checksum_byte is None or
+                                         data[spec.checksum_byte] == safety.checksum_of(spec, data))
     for t in sorted(ticks):
-        safety.check_frame(spec, rx, data, t)
+        before = rx.valid
+        used = safety.check_frame(spec, rx, data, t)
+        assert intact or (not used and not rx.valid and rx.good_run == 0)  # a broken frame: never
+        assert rx.valid == before or used or not rx.valid   # valid again only on a used frame
         safety.check_timeout(spec, rx, t + 5)
-    assert isinstance(rx.valid, bool)
+        assert not rx.valid or rx.good_run >= spec.recover_frames    # after enough good frames
 
 
 @FUZZ

@@ -8,6 +8,7 @@ import hashlib
 import numpy as np
 import pytest
 
+from hil.acceptance import GRADE_ACCURACY
 from tests import golden
 from tests.golden import ticks as per_tick
 
@@ -37,7 +38,7 @@ def test_golden_trace(name):
         from tests.test_sil_acceptance import assert_bumpless
 
         rep = got["report"]
-        assert rep["grade_accuracy"] >= 0.95
+        assert rep["grade_accuracy"] >= GRADE_ACCURACY
         assert rep["mode_switches"] <= rep["grade_changes"] + 1
         assert_bumpless(trace[0])
 
