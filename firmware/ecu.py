@@ -412,11 +412,6 @@ class Ecu:
         (``TickIn``) and the integers C compares (``c/trace_replay.c``)."""
         return fx_entry(self.S[0]["fx"])
 
-    def fx_entries(self, records: np.ndarray) -> list[tuple]:
-        """``fx_tick``'s entries of ticks whose ``S["fx"]`` the compiled SIL loop copied
-        (``records``: an array of that record)."""
-        return [fx_entry(f) for f in records]
-
     def reset(self) -> None:
         """ECU reset (UDS 0x11): the control state starts again, the DTC memory stays
         (non-volatile) and a new operation cycle begins."""

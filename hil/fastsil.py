@@ -29,6 +29,7 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
+from firmware.ecu import fx_entry
 from firmware.layout import view
 from hil import secoc
 from hil.kernels import bus as kb
@@ -122,9 +123,8 @@ def _python_owes(plant: PlantNode, ecu_node: EcuNode, app: AppNode) -> bool:
     entry is due (it goes with the next MODE_RECOMMEND: ``AppNode._decide``'s test)."""
     if plant.done:
         return False
-    return not _between_ticks(plant, ecu_node) or (
-        app.policy == "script" and bool(app.script)
-        and app.script[0][0] <= app.t * app.dt + 1e-9)
+    return not _between_ticks(plant, ecu_node) or (app.policy == "script"
+                                                    and app.script_due())
 
 
 class _Loop:
@@ -272,8 +272,8 @@ class _Loop:
         ecu_node.rows.frombytes(self.rows[self.ek0:ecu_node.k].tobytes())
         st = ecu_node.state
         if st.log is not None:
-            st.log += st.fx_entries(self.fx_rows[self.ek0:ecu_node.k].copy().view(
-                self.fx_type)[:, 0])
+            records = self.fx_rows[self.ek0:ecu_node.k].copy().view(self.fx_type)[:, 0]
+            st.log += [fx_entry(f) for f in records]
         app.n_status, app.t = int(z.n_status), int(z.t)
         app.kind, app.req_mode, app.req_id = int(z.kind), int(z.rmode), int(z.rid)
         app._shown, app._shown_since, app._answered = int(z.shown), int(z.shown_since), \

@@ -644,6 +644,10 @@ class AppNode:
     def push(self, kind: str, mode: Optional[int] = None) -> None:
         self.queued.append((kind, mode))
 
+    def script_due(self) -> bool:
+        """The script's next entry is due (it goes with the next MODE_RECOMMEND)."""
+        return bool(self.script) and self.script[0][0] <= self.t * self.dt + 1e-9
+
     def _send(self, kind: int, mode: int) -> None:
         self.kind, self.req_mode = kind, mode
         self.req_id = (self.req_id + 1) & 0xF
@@ -659,7 +663,7 @@ class AppNode:
             self._send(fp.REQ_CHOOSE, self.mode)
             return
         if self.policy == "script":
-            while self.script and self.script[0][0] <= t * self.dt + 1e-9:
+            while self.script_due():
                 _, kind, mode = self.script.popleft()
                 self._send(REQ_KINDS[kind], rec if mode is None else mode)
             return
