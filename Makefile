@@ -50,7 +50,7 @@ tables: $(STAMP)
 tables-check: $(STAMP)
 	$(PY) -m tools.tables --out c/generated --check
 
-# Real SocketCAN in User-mode Linux (hil/vcan.py; docs/vcan.md): the bench on vcan0 in a real
+# Real SocketCAN in User-mode Linux (hil/transport/vcan.py; docs/vcan.md): the bench on vcan0 in a real
 # kernel where the host's has no CAN. vcan-setup installs the Debian packages (as root).
 VCAN_PKGS := user-mode-linux can-utils iproute2
 

@@ -10,7 +10,7 @@ from Python's by 1 LSB at tick 42417 of the full road section. With the kernels 
 
 OpenBLAS reads ``OPENBLAS_CORETYPE`` when it loads, so :func:`pin` runs when ``hil`` is
 imported: ``tools`` and the test suite (``tests/conftest.py``) import ``hil`` first, and
-``firmware`` stays free of host matters (DESIGN.md §2). It keeps a value already in the
+``firmware`` stays free of host matters (docs/architecture.md). It keeps a value already in the
 environment (an explicit choice), does nothing on a CPU without AVX2 and FMA or off x86-64
 (those hosts may differ in the last bits), and warns when numpy was imported before it,
 since the kernels are chosen by then. Child processes inherit the variable.

@@ -22,19 +22,16 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from calib.ecu_params import GENERATOR, build, inputs_digest  # noqa: F401 (re-exported)
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
+from calib.vehicle import VehicleConfig
 from firmware.fixedpoint import INT32_MIN, best_frac, to_fixed
 from firmware.fx import tables as fixed
 from firmware.params import CTRL_NAMES, MODE_NAMES, EcuParams
 
-if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
-    from hil.config import VehicleConfig
 
 HEADER = "ecu_tables.h"
 SOURCE = "ecu_tables.c"

@@ -12,8 +12,6 @@ import json
 import math
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy.linalg import expm
 from scipy.optimize import minimize
@@ -26,10 +24,9 @@ from calib.linear import comfort_design, safety_design
 from calib.model import (linear_model, mechanics, output_covariance, paper_thresholds,
                          state_covariance, van_loan_integral, window_bound)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
+from calib.vehicle import VehicleConfig
 from firmware import params as fp
 
-if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
-    from hil.config import VehicleConfig
 
 GAINS_DIR = Path(__file__).resolve().parent / "gains"
 

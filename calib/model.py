@@ -15,11 +15,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.linalg import expm, solve_continuous_lyapunov
 
+from calib.errors import ConfigError
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_noise_gain
+from calib.vehicle import GRAVITY_MPS2, VehicleConfig, VehicleParams
 
-if TYPE_CHECKING:                       # (annotations only: the vehicle file is read by hil)
+if TYPE_CHECKING:                       # (annotations only)
     from calib.options import DesignOptions
-    from hil.config import VehicleParams
 
 OUTPUTS = ("ba", "sws", "dtd")
 
@@ -192,3 +193,40 @@ def paper_thresholds(vp: VehicleParams, convention: str = "iso",
 
     return (float(passive_rms(model("B", 30.0))[2]), float(passive_rms(model("B", 10.0))[0]),
             float(passive_rms(model("C", 30.0))[0]))
+
+
+MAX_MODE_DT = 0.5            # the fastest passive mode |lambda| * dt at most this (80 Hz at 1 kHz)
+MAX_STATIC_DEFLECTION_M = (0.5, 0.1)   # spring, tyre under the static load
+MAX_FORCE_N = 32767          # the actuator's peak force: within FORCE_CMD's range (int16 N)
+
+
+def check_plausible(cfg: VehicleConfig, path) -> None:
+    """Refuse, with the reason, a vehicle the bench cannot simulate or calibrate honestly:
+    a passive mode too fast for the plant step (a feather-light mass, a rigid spring), a
+    spring or tyre that sags more than ``MAX_STATIC_DEFLECTION_M`` under the static load, or
+    an actuator whose peak force (force constant x current limit) leaves FORCE_CMD's int16
+    range and the firmware's integer signals (so no overflow is possible downstream)."""
+    vp, ap, dt = cfg.vehicle, cfg.actuator, cfg.sim.plant_dt_s
+    A4 = mechanics(vp)[0]
+    lam = np.linalg.eigvals(A4) if np.all(np.isfinite(A4)) else np.array([np.nan])
+    if not np.all(np.isfinite(lam)):
+        raise ConfigError(f"{path}: the vehicle's dynamics are not finite (check [vehicle])")
+    fastest = float(np.max(np.abs(lam)))
+    if fastest * dt > MAX_MODE_DT:
+        raise ConfigError(
+            f"{path}: the passive car's fastest mode ({fastest / (2 * math.pi):.4g} Hz) is too "
+            f"fast for the plant step of {dt:g} s (at most "
+            f"{MAX_MODE_DT / dt / (2 * math.pi):.3g} Hz): check the masses and stiffnesses")
+    sag = (vp.sprung_mass_kg * GRAVITY_MPS2 / vp.spring_stiffness_n_per_m,
+           vp.static_tire_load_n / vp.tire_stiffness_n_per_m)
+    for what, value, limit in zip(("spring_stiffness_n_per_m", "tire_stiffness_n_per_m"),
+                                  sag, MAX_STATIC_DEFLECTION_M):
+        if value > limit:
+            raise ConfigError(f"{path}: vehicle.{what} sags {value:.3g} m under the static "
+                              f"load (at most {limit:g} m)")
+    peak = ap.force_constant_n_per_a * ap.current_limit_a
+    if not peak <= MAX_FORCE_N:
+        raise ConfigError(f"{path}: the actuator's peak force (force constant "
+                          f"{ap.force_constant_n_per_a:.4g} N/A x current limit "
+                          f"{ap.current_limit_a:g} A = {peak:.4g} N) exceeds {MAX_FORCE_N} N, "
+                          f"FORCE_CMD's range: check screw_lead_m and torque_constant_nm_per_a")

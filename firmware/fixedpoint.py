@@ -3,7 +3,7 @@ C99 with ``int32_t``/``int64_t`` computes the same bits (``c/ecu_fx.c`` mirrors 
 
 Representation: a signal or constant is an ``int32`` mantissa ``m`` with ``f`` fractional bits,
 value = m * 2^-f (Qm.f with m + f = 31; CMSIS's q31 is f = 31, q15 an int16 with f = 15).
-Rules (DESIGN.md section 3): round half away from zero, saturate, never wrap.
+Rules (docs/architecture.md, Conventions): round half away from zero, saturate, never wrap.
 
 * ``mul(a, b, s)``: the int64 product a*b (|a*b| <= 2^62, no overflow), shifted right by
   ``s`` in [0, 62] with rounding half away from zero, saturated to int32.
@@ -122,8 +122,8 @@ def isfinite(v: float) -> bool:
 
 
 def round_half_away(x: float) -> int:
-    """The project's one rounding rule for floats to integers (DESIGN.md section 3): half away
-    from zero. A NaN or an infinity raises ValueError (math.floor)."""
+    """The project's one rounding rule for floats to integers (docs/architecture.md,
+    Conventions): half away from zero. A NaN or an infinity raises ValueError (math.floor)."""
     return math.floor(x + 0.5) if x >= 0.0 else -math.floor(-x + 0.5)   # (floor gives an int)
 
 

@@ -21,7 +21,7 @@ consecutive good frames (hysteresis) and becomes invalid on any bad frame or whe
 arrived for ``timeout_ticks``. RATE: a frame arriving less than ``min_interval_ticks`` after the
 last accepted one (a node flooding the bus) is not used and flagged, but does not invalidate
 the message (its content may be fine). RANGE: a decoded value outside the DBC's declared
-[minimum, maximum] makes the frame invalid (``hil.codec`` checks it, after DLC and CHECKSUM).
+[minimum, maximum] makes the frame invalid (``hil.transport.codec`` checks it, after DLC and CHECKSUM).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
     python -m hil sim --route full_road_section --mode auto --seed 1 [--controller C] [--json]
     python -m hil drive --route full_road_section --seed 1 [--out DIR] [--json]
     python -m hil routes
-    python -m hil vcan [-- COMMAND ...]      (User-mode Linux with vcan0 up; hil/vcan.py)
+    python -m hil vcan [-- COMMAND ...]      (User-mode Linux with vcan0 up; hil/transport/vcan.py)
     python -m hil logdiff CANDUMP.log BUS.log [--json]
     python -m hil diag -i remote -c ws://127.0.0.1:PORT/ --secret-file DIR/hub.secret [--clear]
     python -m hil alarms [--routes R,..] [--seeds N] [--vehicles F,..] [--speeds V,..] [--json]
@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import argparse
 
-from hil import config, verdict
+from hil import config
+from hil.report import verdict
 from hil.cli import (add_cache_argument, add_design_argument, add_json_argument,
                      add_log_arguments, add_vehicle_argument, apply_cache_argument,
                      positive_float, route_or_exit, seed_arg, vehicle_or_exit)
@@ -33,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["vcan"]:        # (its own parser: everything after it may be a command)
-        from hil import vcan
+        from hil.transport import vcan
 
         return vcan.main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m hil", description=__doc__,
@@ -60,11 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("reference", metavar="LOG")
     p.add_argument("other", metavar="LOG")
     add_json_argument(p)
-    from hil import alarms
+    from hil.validate import alarms
 
     bus_parsers = not (argv[:1] and argv[0] in OTHER_COMMANDS)
     if bus_parsers:
-        from hil import diag
+        from hil.apps import diag
 
         diag.add_parser(sub)
     alarms.add_parser(sub)
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clear", action="store_true")
     add_json_argument(p)
     p = sub.add_parser("campaign", help="a validation campaign (a matrix of SIL cases) on "
-                                        "Dask, results in SQLite (hil/campaign.py)")
+                                        "Dask, results in SQLite (hil/validate/campaign.py)")
     p.add_argument("file", metavar="FILE.toml")
     p.add_argument("--scheduler", default="local",
                    help="local (a LocalCluster, one worker process per core) or "
@@ -126,25 +127,26 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "sim":
         return _sim(args)
     if args.command == "run":
-        from hil import supervisor
+        from hil.bench import supervisor
 
         return supervisor.run(args)
     if args.command in ("ecu", "plant", "app"):
-        from hil import procs
+        from hil.bench import procs
 
         return procs.main(args.command, args)
     if args.command in ("campaign", "campaign-report", "campaign-case"):
-        from hil import campaign
+        from hil.validate import campaign
 
         return {"campaign": campaign.main, "campaign-report": campaign.report_main,
                 "campaign-case": campaign.case_main}[args.command](args)
     if args.command == "faults":
-        from hil import faults
+        from hil.validate import faults
 
         return faults.main(args)
 
     if args.command in ("diag", "alarms"):
-        from hil import alarms, diag
+        from hil.validate import alarms
+        from hil.apps import diag
 
         return (diag if args.command == "diag" else alarms).main(args)
     if args.command == "cache":
@@ -163,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
             + ("" if r["enabled"] else "; off in this environment (SUSPENSION_NO_CACHE)")))
         return 0
     if args.command == "keygen":
-        from hil import secoc
+        from hil.transport import secoc
         from hil.cli import fail
 
         try:
@@ -177,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "logdiff":
         import json
 
-        from hil.buslog import compare, render_compare
+        from hil.transport.buslog import compare, render_compare
         from hil.cli import fail
 
         try:
@@ -187,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(c, indent=1) if args.json else render_compare(c))
         return 0 if c["equal"] else 1
     if args.command == "routes":
-        from hil.road import load_route, shipped_routes
+        from hil.sim.road import load_route, shipped_routes
 
         for name in shipped_routes():
             r = load_route(name)
@@ -195,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r.duration_s:6.1f} s  {r.description}")
         return 0
 
-    from hil.report import drive_report, finish, render_drive
+    from hil.report.render import drive_report, finish, render_drive
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route).with_convention(args.convention)
@@ -231,7 +233,7 @@ def _driver_arguments(p, bench: bool = False) -> None:
 
 def _key_argument(p, node: bool = False) -> None:
     p.add_argument("--key-file", metavar="FILE",
-                   help="the SecOC key file (hil/secoc.py; python -m hil keygen FILE)"
+                   help="the SecOC key file (hil/transport/secoc.py; python -m hil keygen FILE)"
                         + (" (required; hil run makes one per run)" if node else
                            " (default: a new key for this run)"))
 
@@ -339,14 +341,14 @@ def _inject_argument(p) -> None:
 def _sim(args) -> int:
     from pathlib import Path
 
-    from hil import sil
+    from hil.nodes import sil
     from hil.cli import (design_or_exit, fail, key_or_exit, lock_out, log_options_or_exit,
                          progress_bar)
-    from hil.buslog import SIL_CHANNEL, BusLogFile, convert
+    from hil.transport.buslog import SIL_CHANNEL, BusLogFile, convert
     from hil.config import ConfigError, load_driver_script
-    from hil.figures import write_outputs
+    from hil.report.figures import write_outputs
     from hil.nodes import LockstepClock
-    from hil.report import finish, render_sil
+    from hil.report.render import finish, render_sil
 
     cfg = vehicle_or_exit(args.vehicle)
     route = route_or_exit(args.route)

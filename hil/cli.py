@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
 from calib.options import load_options
-from hil.config import ConfigError, VehicleConfig, load_vehicle
-from hil.road import GRADES, Route, load_route
+from hil.config import ConfigError, load_vehicle
+from calib.vehicle import VehicleConfig
+from hil.sim.road import GRADES, Route, load_route
 
 EXIT_CONFIG = 2
 
@@ -65,7 +66,7 @@ def add_log_arguments(p: argparse.ArgumentParser) -> None:
 def log_options_or_exit(args) -> tuple[int, tuple[str, ...]]:
     """(start time in Unix microseconds, formats) of ``--start-time`` and ``--log-format``;
     bad values exit 2 with one line."""
-    from hil.buslog import parse_formats, parse_start_time
+    from hil.transport.buslog import parse_formats, parse_start_time
 
     try:
         return (parse_start_time(getattr(args, "start_time", None)),
@@ -174,7 +175,7 @@ def lock_out(path: str | Path) -> Path:
 def key_or_exit(path: str | None, required: bool = False) -> Optional[bytes]:
     """The SecOC key of ``--key-file FILE`` (None without it, unless ``required``); a bad
     file exits 2 with one line."""
-    from hil.secoc import load_key
+    from hil.transport.secoc import load_key
 
     if path is None:
         if required:

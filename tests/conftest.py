@@ -9,12 +9,12 @@ import functools
 import os
 
 import hil  # noqa: F401
-from hil.bus import kernel_has_vcan
+from hil.transport.bus import kernel_has_vcan
 
 
 @functools.lru_cache(maxsize=None)
 def _absent() -> dict:
-    from hil import vcan
+    from hil.transport import vcan
 
     uml = not os.environ.get(vcan.GUEST_MARK)            # (no UML inside UML)
     if uml:

@@ -24,7 +24,7 @@ def cmdline(pid: int) -> str:
         return ""
 
 
-# the checks of a realtime run that a loaded or slow host may fail (hil.verdict.run_checks)
+# the checks of a realtime run that a loaded or slow host may fail (hil.report.verdict.run_checks)
 REALTIME_TIMING = frozenset({"missed_deadline_ratio", "lost_frame_ratio", "failsafe_ratio",
                              "plant_fallback_ratio"})
 

@@ -9,11 +9,11 @@ from firmware import akf
 from firmware.ecu import init as ecu_init
 from firmware.kernels import akf as kern
 from firmware.layout import params_record
-from hil import sil
+from hil.nodes import sil
 from hil.config import default_vehicle
 from calib.ecu_params import build
 from calib.options import DesignOptions
-from hil.road import constant_route
+from hil.sim.road import constant_route
 
 CFG = default_vehicle()
 

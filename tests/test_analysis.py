@@ -10,7 +10,7 @@ import pytest
 
 from hil.config import default_vehicle, load_vehicle
 from calib.model import linear_model, output_covariance, passive_rms
-from hil.road import gq_of
+from hil.sim.road import gq_of
 from tools.analysis import limits, passive, thresholds
 from calib.linear import Normalised, physical_limits
 

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hil.bus import BusError, BusSpec, Hub, close_bus, kernel_has_vcan, resolve
+from hil.transport.bus import BusError, BusSpec, Hub, close_bus, kernel_has_vcan, resolve
 
 pytestmark = pytest.mark.hil
 
@@ -77,7 +77,7 @@ def test_unreachable_bus_says_so():
 def test_hub_filters_per_client_and_keeps_the_order():
     """Acceptance filters act in the hub (a node gets only what it reads); every receiver gets
     the frames in the order sent; the sender never gets its own frames back."""
-    from hil.procs import node_filters
+    from hil.bench.procs import node_filters
 
     with Hub() as hub:
         sender = BusSpec("remote", hub.url).open()
@@ -101,11 +101,11 @@ def test_hub_filters_per_client_and_keeps_the_order():
 
 def _raw_client(port: int, protocol: str):
     """A bare python-can-remote WebSocket with the library's own framing (the methods
-    hil.bus.fast_remote_client replaced)."""
+    hil.transport.bus.fast_remote_client replaced)."""
     from can_remote import protocol as rp
     from can_remote import websocket as ws
 
-    from hil.bus import fast_remote_client
+    from hil.transport.bus import fast_remote_client
 
     fast_remote_client()
 
@@ -145,7 +145,7 @@ def test_hub_speaks_the_json_protocol_and_answers_errors():
 
 
 def test_fast_client_framing_is_the_protocol():
-    """hil.bus.fast_remote_client sends what the library's reader parses and reads what the
+    """hil.transport.bus.fast_remote_client sends what the library's reader parses and reads what the
     library sends: frames between a patched and an unpatched client through the hub."""
     with Hub() as hub:
         proto, sock = _raw_client(hub.port, "can.binary+json.v1")
@@ -168,10 +168,10 @@ def test_fast_client_framing_is_the_protocol():
 
 
 def test_websocket_framing_round_trips_at_every_length_form():
-    """hil.wsframe, the hub's and the clients' one framing: a frame parses back to its opcode
+    """hil.transport.wsframe, the hub's and the clients' one framing: a frame parses back to its opcode
     and payload, masked or not, at the 7-bit, 16-bit and 64-bit length forms' edges; the
     accept key is RFC 6455's example."""
-    from hil import wsframe
+    from hil.transport import wsframe
 
     for n in (0, 1, 125, 126, 0xFFFF, 0x10000):
         payload = bytes(i % 251 for i in range(n))
@@ -210,7 +210,7 @@ def test_hub_drops_a_client_that_stops_reading():
     dropped (here 64 KiB instead of the hub's 16 MiB, to keep the test short)."""
     import socket
 
-    from hil import hub as hubmod
+    from hil.transport import hub as hubmod
 
     server = hubmod.HubServer(0, max_backlog=64 * 1024)
     import threading
@@ -250,7 +250,7 @@ def test_hub_drops_a_client_that_stops_reading():
 
 
 def test_rt_priority_never_raises_and_says_what_it_got():
-    from hil.bus import RT_OFFSET, rt_of, set_rt_priority
+    from hil.transport.bus import RT_OFFSET, rt_of, set_rt_priority
 
     assert set_rt_priority(0) == "SCHED_OTHER"
     got = set_rt_priority(1000)                       # out of range: refused, not raised
@@ -285,8 +285,8 @@ class _LiveHub:
     def __init__(self):
         import threading
 
-        from hil.bus import free_port
-        from hil.hub import HubServer
+        from hil.transport.bus import free_port
+        from hil.transport.hub import HubServer
 
         self.log: list[str] = []
         self.server = HubServer(free_port(), log=self.log.append)
@@ -392,8 +392,8 @@ def test_the_rate_limit_drops_the_excess_and_says_so():
     import threading
     import time
 
-    from hil.bus import free_port
-    from hil.hub import HubServer
+    from hil.transport.bus import free_port
+    from hil.transport.hub import HubServer
 
     log = []
     server = HubServer(free_port(), log=log.append, rate_limit_fps=50)

@@ -13,9 +13,9 @@ from pathlib import Path
 import can
 import pytest
 
-from hil.buslog import (LOG_FORMATS, SIL_CHANNEL, convert, dut_tx_ids, parse_formats,
+from hil.transport.buslog import (LOG_FORMATS, SIL_CHANNEL, convert, dut_tx_ids, parse_formats,
                         parse_start_time, read_log)
-from hil.codec import DBC_PATH, Codec
+from hil.transport.codec import DBC_PATH, Codec
 from hil.nodes import ID
 
 ROOT = Path(__file__).resolve().parents[1]

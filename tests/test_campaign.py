@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from calib.errors import ConfigError
-from hil import campaign as cp
+from hil.validate import campaign as cp
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.xdist_group("campaign")   # (the tests that run campaigns: slow)

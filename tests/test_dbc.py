@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from firmware import safety
-from hil import secoc
-from hil.codec import DBC_PATH, Codec, declared_raw_range, raw_range, to_raw
-from hil.road import MAX_SPEED_MPS
+from hil.transport import secoc
+from hil.transport.codec import DBC_PATH, Codec, declared_raw_range, raw_range, to_raw
+from hil.sim.road import MAX_SPEED_MPS
 from tools.busload import bus_load
 
 CODEC = Codec()
@@ -206,7 +206,7 @@ def test_positional_packer_and_unpacker_equal_encode_raw_and_decode():
 
 
 def test_a_big_endian_signal_is_refused_at_load(tmp_path):
-    """The codec packs little-endian signals only (DESIGN.md section 3): a DBC with a
+    """The codec packs little-endian signals only (docs/architecture.md, Conventions): a DBC with a
     big-endian one is an error when it is loaded, never a silent slow path."""
     text = DBC_PATH.read_text().replace("SG_ SPEED : 0|13@1+", "SG_ SPEED : 7|13@0+")
     assert text != DBC_PATH.read_text()
@@ -233,7 +233,7 @@ def test_the_firmwares_receive_and_transmit_tables_match_the_dbc():
         assert check.counter_checksum == has, check.message
     # every message the ECU node listens to (besides the simulation-only SIM_TICK) is checked
     from hil.nodes import ID, EcuNode
-    from hil.sil import ecu_params
+    from hil.nodes.sil import ecu_params
     from hil.config import default_vehicle
 
     node = EcuNode(ecu_params(default_vehicle(), "auto"), codec)
@@ -270,7 +270,7 @@ def test_the_fault_word_is_one_named_signal_per_bit_where_it_always_was():
     """ECU_STATUS: bits 0-15 of the fault word in payload bits 8-23, bit 16 in bit 48, each
     its own FAULT_<name> signal with a value table (the bytes of the 16-bit FAULTS word and
     SUPPLY_FAULT it replaced)."""
-    from hil.codec import FAULT_SIGNALS, fault_signals, fault_word
+    from hil.transport.codec import FAULT_SIGNALS, fault_signals, fault_word
 
     status = CODEC.message("ECU_STATUS")
     assert set(FAULT_SIGNALS.values()) == {s.name for s in status.signals

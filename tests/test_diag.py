@@ -15,11 +15,15 @@ from firmware.diag import SESSION_EXTENDED, dtc, fdi, uds
 from firmware.diag.view import DiagView
 from firmware.ecu import Ecu, Inputs
 from firmware.ecu import init as ecu_init
-from hil import faults, nodes, secoc
-from hil.codec import Codec
+from hil.faults.base import PLAUSIBLE_TICKS, Window
+from hil.faults.injector import Injector
+from hil.faults.registry import SUPPLY_DROP
+from hil import nodes
+from hil.transport import secoc
+from hil.transport.codec import Codec
 from hil.config import default_vehicle
-from hil.road import load_route
-from hil.sil import app_node, ecu_params
+from hil.sim.road import load_route
+from hil.nodes.sil import app_node, ecu_params
 
 P = build(default_vehicle())
 SAFETY_DTC = dtc.TF | dtc.TFTOC | dtc.PDTC | dtc.CDTC | dtc.TFSLC | dtc.WIR   # 0xAF
@@ -33,7 +37,7 @@ MAX_PLAUSIBLE_MS = 200          # the issue's limit for plausible sensor faults
 def _drive(tmp_path, fault=None, grade="B", speed=20.0, mode="comfort", hardware=None):
     """The default car on a short road, in process, with ``fault(reading, k)`` applied to the
     sensor readings from FAULT_AT on, or the campaign's ``hardware`` fault (the bridge, the
-    winding, the supply: ``hil.faults``) for 300 ticks from FAULT_AT. Returns (the ECU node,
+    winding, the supply: ``hil.validate.faults``) for 300 ticks from FAULT_AT. Returns (the ECU node,
     per-tick failed test bits)."""
     cfg = default_vehicle()
     dt = cfg.sim.plant_dt_s
@@ -41,8 +45,8 @@ def _drive(tmp_path, fault=None, grade="B", speed=20.0, mode="comfort", hardware
     path.write_text(f'name = "t"\n[[segment]]\ngrade = "{grade}"\n'
                     f"length_m = {DRIVE_TICKS * dt * speed:.1f}\nspeed_mps = {speed}\n")
     codec, key = Codec(), secoc.new_key()
-    inject = None if hardware is None else faults.Injector(
-        [faults.Window(hardware, "plant_hw", FAULT_AT, faults.PLAUSIBLE_TICKS)], "plant")
+    inject = None if hardware is None else Injector(
+        [Window(hardware, "plant_hw", FAULT_AT, PLAUSIBLE_TICKS)], "plant")
     plant = nodes.PlantNode(cfg, load_route(path), 1, codec, key=key, inject=inject)
     plant.n = min(plant.n, DRIVE_TICKS)
     ecu_node = nodes.EcuNode(ecu_params(cfg, mode), codec, key=key)
@@ -141,7 +145,7 @@ def test_actuator_and_supply_faults_are_detected_isolated_and_fail_safe(tmp_path
     e = mem.entries[dtc.BY_NAME[want]]
     assert e.first_tick >= FAULT_AT and e.snapshot.tick == e.first_tick
     # the freeze frame's supply as last measured: the supply fault's own sample
-    supply = 48.0 * (faults.SUPPLY_DROP if hardware == "supply_drop" else 1.0)
+    supply = 48.0 * (SUPPLY_DROP if hardware == "supply_drop" else 1.0)
     assert abs(e.snapshot.supply_mv / 1000 - supply) < 0.3
     # the fault ends with the window: the bridge is back before the drive ends
     assert tr["enable"][-200:].all() and not failed[-200:].any()
@@ -154,7 +158,7 @@ def test_a_stuck_duty_that_outlives_the_retry_is_failed_again_within_its_window(
     the rest of the window went unseen, and its end then looked like a new fault)."""
     node, failed = _drive(tmp_path, hardware="stuck_duty")
     en = np.asarray(node.trace()["enable"]).astype(bool)
-    end = FAULT_AT + faults.PLAUSIBLE_TICKS
+    end = FAULT_AT + PLAUSIBLE_TICKS
     retries = np.flatnonzero(~en[:-1] & en[1:]) + 1
     inside = retries[(retries > FAULT_AT) & (retries < end)]
     assert inside.size, "no retry inside the fault window"

@@ -20,9 +20,9 @@ def test_the_analytic_psd_integrates_to_the_lyapunov_variance(gq, speed):
 
 
 def test_every_figure_is_written(tmp_path):
-    from hil import sil
-    from hil.figures import FIGURES, write_outputs
-    from hil.road import load_route
+    from hil.nodes import sil
+    from hil.report.figures import FIGURES, write_outputs
+    from hil.sim.road import load_route
 
     cfg, route = load_vehicle(None), load_route("city")
     report, trace = sil.run(cfg, route, "auto", 1, duration_s=8.0)

@@ -359,9 +359,9 @@ def test_paper_table2_rule():
 
 
 def test_sil_refuses_an_ecu_tick_that_differs_from_the_plant_step():
-    from hil import sil
+    from hil.nodes import sil
     from calib.options import DesignOptions
-    from hil.road import constant_route
+    from hil.sim.road import constant_route
 
     other = build(default_vehicle(), DesignOptions(dt_s=0.002))
     with pytest.raises(ValueError, match="plant step"):

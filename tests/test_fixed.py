@@ -15,9 +15,9 @@ from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, best_frac, div_round
 from firmware.fx.path import adc_signal, tanh_q
 from firmware.fx.tables import ADC_FRAC, F_NN
 from firmware.layout import params_record
-from hil import sil
+from hil.nodes import sil
 from hil.config import default_vehicle
-from hil.road import constant_route
+from hil.sim.road import constant_route
 
 CFG = default_vehicle()
 INT32 = st.integers(INT32_MIN, INT32_MAX)

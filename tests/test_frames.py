@@ -1,5 +1,5 @@
 """The compiled frames and SecOC (hil/kernels/frames.py, hil/kernels/secoc.py) against the
-reference: hil.codec's packing and decoding, firmware.safety's receive checks and hil.secoc's
+reference: hil.transport.codec's packing and decoding, firmware.safety's receive checks and hil.transport.secoc's
 profile 1, on random values, corrupted frames, replays and losses."""
 
 import math
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from firmware import safety
-from hil import secoc
-from hil.codec import Codec, to_raw
+from hil.transport import secoc
+from hil.transport.codec import Codec, to_raw
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels.cmac import Cmac

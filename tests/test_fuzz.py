@@ -7,9 +7,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from firmware import safety
-from hil.codec import Codec
+from hil.transport.codec import Codec
 from hil.config import ConfigError, load_vehicle
-from hil.road import load_route
+from hil.sim.road import load_route
 
 CODEC = Codec()
 FUZZ = settings(max_examples=300, derandomize=True, deadline=None,
@@ -112,8 +112,8 @@ _PARAMS = []
 def _nodes():
     from hil.config import default_vehicle
     from hil.nodes import AppNode, EcuNode, PlantNode
-    from hil.road import constant_route
-    from hil.sil import ecu_params
+    from hil.sim.road import constant_route
+    from hil.nodes.sil import ecu_params
 
     cfg = default_vehicle()
     if not _PARAMS:

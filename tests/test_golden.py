@@ -8,7 +8,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from hil.acceptance import GRADE_ACCURACY
+from hil.validate.acceptance import GRADE_ACCURACY
 from tests import golden
 from tests.golden import ticks as per_tick
 

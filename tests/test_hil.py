@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from firmware import params as fp
-from hil.buslog import SIL_CHANNEL, read_log, same_channel
+from hil.transport.buslog import SIL_CHANNEL, read_log, same_channel
 from hil.nodes import ID
 from tests import golden
 from tests.procutil import children as _children
@@ -95,7 +95,7 @@ def test_refusal_scenario_and_can_player(tmp_path):
     assert np.all(mode[1:] == fp.MODE_COMFORT)
     assert {fp.MODE_ENERGY, fp.MODE_SAFETY} <= set(np.unique(rec).tolist())
     # the refusals are on the bus: DRIVER_REQUEST frames with REQ_KIND = refuse
-    from hil.codec import Codec
+    from hil.transport.codec import Codec
 
     codec = Codec()
     kinds = [codec.decode(fid, data).signals["REQ_KIND"]
@@ -123,7 +123,7 @@ def test_safety_override_scenario(tmp_path):
     assert set(np.unique(seg[safety]).tolist()) <= {1, 2}      # during or just after D
     assert mode[-1] == fp.MODE_COMFORT                           # and back
     assert "accept" not in rep["driver"]["requests"]             # nobody asked for it
-    from hil.codec import Codec
+    from hil.transport.codec import Codec
 
     codec = Codec()
     recs = [codec.decode(fid, data).signals for _, fid, data in read_log(tmp_path / "bus.log")

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from calib.ecu_params import default_gains_path
-from hil.codec import Codec, DbcError
+from hil.transport.codec import Codec, DbcError
 from hil.config import default_vehicle
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -105,7 +105,7 @@ def test_dbc_problems_are_one_line(tmp_path):
             Codec(path)
         assert want in str(exc.value) and "\n" not in str(exc.value)
     # and the command line turns one that escapes (a DBC is loaded at import) into one line
-    code = ("import hil.codec as c; from pathlib import Path; c.DBC_PATH = Path('/no/such.dbc');"
+    code = ("import hil.transport.codec as c; from pathlib import Path; c.DBC_PATH = Path('/no/such.dbc');"
             " import hil.cli as cli; cli.run_main(lambda: c.Codec(c.DBC_PATH) and 0)")
     _one_line_error(["-c", code], "/no/such.dbc: cannot read the DBC")
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from firmware.kernels import akf as akf_kernels
-from hil import sil
+from hil.nodes import sil
 from hil.cli import _clean
 from hil.config import default_vehicle
-from hil.plant import QuarterCarPlant
-from hil.road import constant_route, load_route
+from hil.sim.plant import QuarterCarPlant
+from hil.sim.road import constant_route, load_route
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()
@@ -92,8 +92,8 @@ def test_passive_run_is_the_step_loop():
 
     nl = dataclasses.replace(CFG.nonlinear, bump_stops=True, tire_lift_off=True)
     cfg = dataclasses.replace(CFG, nonlinear=nl)
-    from hil.drive import road_at_ticks
-    from hil.road import drive_timeline, generate_profile
+    from hil.sim.drive import road_at_ticks
+    from hil.sim.road import drive_timeline, generate_profile
 
     route = constant_route("F", 30.0, 2.0)
     zf = road_at_ticks(generate_profile(route, 1), drive_timeline(route, cfg.sim.plant_dt_s))
@@ -135,11 +135,12 @@ import json
 from numba.core.registry import CPUDispatcher
 from firmware.kernels import akf, bppid, grade
 from firmware import ecu as tick
-from hil import nodes, sil
+from hil import nodes
+from hil.nodes import sil
 from hil.kernels import ecunode, plant, sensors
-from hil.codec import Codec
+from hil.transport.codec import Codec
 from hil.config import default_vehicle
-from hil.road import load_route
+from hil.sim.road import load_route
 
 def kernels():
     out = {}

@@ -1,4 +1,4 @@
-"""Layout rules of DESIGN.md §2 beyond the import-linter contracts (tests/test_layers.py): the
+"""Layout rules of docs/architecture.md (Layers) beyond the import-linter contracts (tests/test_layers.py): the
 firmware imports only what a pure fixed-step ECU needs (an allow-list, so a new dependency
 cannot slip in), and the test processes run with OpenBLAS's kernels pinned."""
 

@@ -8,10 +8,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from hil.config import default_vehicle, load_vehicle
-from hil.drive import drive
+from hil.sim.drive import drive
 from calib.model import linear_model, passive_rms
-from hil.plant import QuarterCarPlant
-from hil.road import constant_route, make_segment, Route
+from hil.sim.plant import QuarterCarPlant
+from hil.sim.road import constant_route, make_segment, Route
 
 CFG = default_vehicle()
 
@@ -84,8 +84,8 @@ def exercise(plant: QuarterCarPlant, seconds: float, seed: int):
     off/on, on a rough road."""
     rng = np.random.default_rng(seed)
     route = Route("e", (make_segment("D", length_m=20.0 * seconds, speed_mps=20.0),))
-    from hil.road import generate_profile, drive_timeline
-    from hil.drive import road_at_ticks
+    from hil.sim.road import generate_profile, drive_timeline
+    from hil.sim.drive import road_at_ticks
 
     tl = drive_timeline(route, plant.dt)
     zf = road_at_ticks(generate_profile(route, seed), tl)

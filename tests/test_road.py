@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hil.config import ConfigError
-from hil.road import (GRADE_GQ_M3, GRADES, RoadSettings, Route, constant_route, drive_timeline,
+from hil.sim.road import (GRADE_GQ_M3, GRADES, RoadSettings, Route, constant_route, drive_timeline,
                       estimate_gq, generate_profile, grade_of, load_route, make_segment,
                       shipped_routes)
 

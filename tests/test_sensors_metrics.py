@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 from scipy.signal import freqz
 
-from hil.config import SensorChannel, default_vehicle
-from hil.metrics import peak, rising_edges, rms, wk_digital, wk_weighted_rms
+from calib.vehicle import SensorChannel
+
+from hil.config import default_vehicle
+from hil.sim.metrics import peak, rising_edges, rms, wk_digital, wk_weighted_rms
 from firmware.fixedpoint import round_half_away
-from hil.sensors import SensorSuite, from_counts, to_counts
+from hil.sim.sensors import SensorSuite, from_counts, to_counts
 
 CH = SensorChannel(noise_std=0.0, range_min=-10.0, range_max=10.0, bits=12)
 

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil import sil
-from hil.acceptance import (GRADE_ACCURACY, OWN_LIMIT_GAP, REGEN_ACCEPTANCE,
+from hil.nodes import sil
+from hil.validate.acceptance import (GRADE_ACCURACY, OWN_LIMIT_GAP, REGEN_ACCEPTANCE,
                             REGEN_HARVEST_SHARE, violations)
 from hil.config import default_vehicle, load_vehicle
 from calib.model import linear_model
-from hil.road import constant_route, gq_of, load_route
+from hil.sim.road import constant_route, gq_of, load_route
 from calib.linear import physical_limits
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""The compiled SIL loop (hil/kernels/silloop.py through hil/fastsil.py) against the nodes of
+"""The compiled SIL loop (hil/kernels/silloop.py through hil/nodes/fastsil.py) against the nodes of
 hil/nodes.py frame by frame (``sil.run(compiled=False)``): the same report, trace, frames on
 the bus (every byte, in order) and node state afterwards; no allocation per tick."""
 
@@ -11,11 +11,11 @@ import sys
 import numpy as np
 import pytest
 
-from hil import fastsil, sil
-from hil.codec import Codec
+from hil.nodes import fastsil, sil
+from hil.transport.codec import Codec
 from hil.config import default_vehicle, load_vehicle
 from hil.nodes import AppNode, EcuNode, PlantNode
-from hil.road import load_route
+from hil.sim.road import load_route
 
 CFG = default_vehicle()
 KEY = bytes(range(16))
@@ -160,10 +160,10 @@ def test_the_loop_allocates_nothing_per_tick():
     code = """
 import json, hil
 from numba.core.runtime import rtsys
-from hil import sil
+from hil.nodes import sil
 from hil.kernels import silloop as kl
 from hil.config import default_vehicle
-from hil.road import load_route
+from hil.sim.road import load_route
 
 inner = kl.run
 counts = []

@@ -123,7 +123,7 @@ def test_the_tick_allocates_nothing():
 import json, hil
 from numba import njit
 from numba.core.runtime import rtsys
-from hil import sil
+from hil.nodes import sil
 from hil.config import default_vehicle
 from calib.fx_tables import build_tables
 from firmware.ecu import Inputs

@@ -12,7 +12,7 @@ from hil.config import ConfigError, default_vehicle, load_vehicle
 from calib.ecu_params import default_gains_path, load_gains
 from calib.options import DesignOptions
 from calib.model import linear_model
-from hil.road import gq_of
+from hil.sim.road import gq_of
 from calib.linear import RelativeFamily, physical_limits
 from calib.galqr import tune
 

@@ -14,11 +14,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from firmware.diag import dtc
-from hil import diag, nodes, secoc
-from hil.codec import Codec
+from hil.apps import diag
+from hil import nodes
+from hil.transport import secoc
+from hil.transport.codec import Codec
 from hil.config import default_vehicle
 from hil.nodes import ID
-from hil.sil import ecu_params
+from hil.nodes.sil import ecu_params
 
 ROOT = Path(__file__).resolve().parents[1]
 P = ecu_params(default_vehicle(), "comfort")
@@ -181,7 +183,7 @@ def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
 def test_the_tester_without_a_bench_says_so_in_one_line(tmp_path):
     secret = tmp_path / "s"
     secret.write_text("00" * 16)
-    secret.chmod(0o600)                  # (a key file: hil.secoc.load_key refuses others)
+    secret.chmod(0o600)                  # (a key file: hil.transport.secoc.load_key refuses others)
     p = _diag("ws://127.0.0.1:9/", secret)
     assert p.returncode != 0 and len(p.stderr.strip().splitlines()) == 1
     assert "Traceback" not in p.stderr

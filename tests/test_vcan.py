@@ -3,7 +3,7 @@
 The tests marked ``needs_vcan`` need a kernel with CAN and vcan0 up: ``make vcan-test`` runs
 them (with the other ``vcan``-marked tests) in User-mode Linux, where they are the only check
 of the socketcan path; on a host without vcan0 they are deselected (tests/conftest.py says so
-in one line). The launcher itself (``hil/vcan.py``) is tested from the host
+in one line). The launcher itself (``hil/transport/vcan.py``) is tested from the host
 (tests/test_vcan_launcher.py). Lockstep runs, but one: UML has one CPU and a 100 Hz tick, so
 realtime pacing runs and reports its figures there, with no verdict on deadlines.
 """
@@ -17,9 +17,9 @@ from pathlib import Path
 import can
 import pytest
 
-from hil import vcan
-from hil.bus import SocketcanTap
-from hil.buslog import SIL_CHANNEL, compare, same_channel
+from hil.transport import vcan
+from hil.transport.bus import SocketcanTap
+from hil.transport.buslog import SIL_CHANNEL, compare, same_channel
 from tests import golden
 from tests.procutil import REALTIME_TIMING, assert_only_timing_failed
 

@@ -1,4 +1,4 @@
-"""The User-mode Linux launcher (``python -m hil vcan``, hil/vcan.py), from the host: what a
+"""The User-mode Linux launcher (``python -m hil vcan``, hil/transport/vcan.py), from the host: what a
 command gets carried over and back, and that UML ends with nothing left behind. Marker
 ``needs_uml``: deselected where UML is not installed (tests/conftest.py says so)."""
 
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from hil import vcan
-from hil.buslog import read_log
+from hil.transport import vcan
+from hil.transport.buslog import read_log
 from tests.procutil import cmdline
 def launch(*args, timeout=120, **kw) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "hil", "vcan", "--quiet", *args],

@@ -9,10 +9,10 @@ from pathlib import Path
 import junitparser
 import pytest
 
-from hil import verdict
+from hil.report import verdict
 from hil.config import default_vehicle
-from hil.road import load_route
-from hil.sil import run
+from hil.sim.road import load_route
+from hil.nodes.sil import run
 
 ROOT = Path(__file__).resolve().parents[1]
 B20 = str(ROOT / "tests" / "golden" / "routes" / "b20.toml")
@@ -112,7 +112,7 @@ def test_a_fail_safe_episode_is_not_a_mode_switch_but_chatter_is():
     import numpy as np
 
     from firmware import safety
-    from hil.sil import mode_switches
+    from hil.nodes.sil import mode_switches
 
     mode = np.array([2, 2, 0, 0, 2, 2, 3, 3], dtype=np.int8)
     faults = np.zeros(8, dtype=np.int32)
@@ -130,7 +130,7 @@ def test_the_road_holding_override_is_counted_apart_from_the_mode_switches():
     import numpy as np
 
     from firmware.modes import REASON_FAULT, REASON_ROAD_HOLDING
-    from hil.sil import mode_switches, road_holding_entries
+    from hil.nodes.sil import mode_switches, road_holding_entries
 
     mode = np.array([2, 4, 4, 3, 3, 4, 3, 3, 4, 4, 3], dtype=np.int8)
     reason = np.zeros(11, dtype=np.int8)
@@ -150,7 +150,7 @@ def test_a_run_whose_nodes_wrote_nothing_still_leaves_a_failing_report(tmp_path,
     died at start) leaves report.json and report.md marked incomplete, verdict fail."""
     import argparse
 
-    from hil.supervisor import _partial_report
+    from hil.bench.supervisor import _partial_report
 
     args = argparse.Namespace(mode="comfort", controller=None, seed=1, driver="accept",
                               pace="lockstep", junit=str(tmp_path / "j.xml"), json=False)

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 from firmware.params import MODE_NAMES
-from hil.buslog import read_log
-from hil.codec import Codec
+from hil.transport.buslog import read_log
+from hil.transport.codec import Codec
 from hil.nodes import ID
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,7 +117,7 @@ def test_the_page_takes_requests_only_with_its_token_and_host():
     token (403), one addressed to another host (403), a bad one (400), and queues a good one
     for the app node."""
     from hil.nodes import AppNode
-    from hil.webapp import WebApp
+    from hil.apps.webapp import WebApp
 
     node = AppNode(Codec(), "web")
     web = WebApp(node)

@@ -71,10 +71,10 @@ def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     from calib.fx_tables import build_tables
     from firmware.ecu import Inputs
     from firmware.ecu import Ecu
-    from hil import sil
+    from hil.nodes import sil
     from hil.config import default_vehicle
     from hil.nodes import _HASHED
-    from hil.road import load_route
+    from hil.sim.road import load_route
 
     rows = bytearray()
     cfg = default_vehicle()
@@ -101,10 +101,11 @@ def ecu_tick_times_with_tester(ticks: int, tester: bool) -> tuple[np.ndarray, np
     (every ``TESTER_EVERY_TICKS``: 0x22 of four DIDs, then 0x19 0x0A, a 99-byte answer in
     15 frames after the tester's flow control, in turn). Returns (tick times, request
     times) in microseconds."""
-    from hil import nodes, sil
+    from hil import nodes
+    from hil.nodes import sil
     from hil.config import default_vehicle
     from hil.nodes import ID
-    from hil.road import load_route
+    from hil.sim.road import load_route
 
     reqs = (bytes([0x09, 0x22, 0x01, 0x00, 0x01, 0x01, 0x01, 0x03, 0x01, 0x06]),
             bytes([0x02, 0x19, 0x0A]))
@@ -144,9 +145,9 @@ def ecu_tick_times_with_tester(ticks: int, tester: bool) -> tuple[np.ndarray, np
 
 def sil_rtf(duration_s: float | None) -> tuple[float, float]:
     """``hil sim``'s run on the default route: (simulated s per wall s, wall us per tick)."""
-    from hil import sil
+    from hil.nodes import sil
     from hil.config import default_vehicle
-    from hil.road import load_route
+    from hil.sim.road import load_route
 
     t0 = time.perf_counter()
     rep, trace = sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
@@ -163,9 +164,9 @@ def c_core_tick_us(duration_s: float, repeats: int, tmp: Path) -> dict:
     """``fx_tick`` of the C core (``c/ecu_fx.c`` at ``tools.c_build.CFLAGS``, -O2) over a
     trace the Python fixed-point path recorded: the best and the median of ``repeats`` timed
     passes, in microseconds per tick."""
-    from hil import sil
+    from hil.nodes import sil
     from hil.config import default_vehicle
-    from hil.road import load_route
+    from hil.sim.road import load_route
     from tools.c_build import REPLAY_SOURCES, compile_c, replay_input
 
     exe = compile_c(tmp / "trace_replay", REPLAY_SOURCES)
@@ -187,11 +188,11 @@ def c_core_tick_us(duration_s: float, repeats: int, tmp: Path) -> dict:
 STAGES = (
     ("sil_loop", ("hil/kernels/silloop.py",)),               # the compiled loop (opaque)
     ("ecu_tick", ("firmware/", "firmware/kernels/")),   # the compiled tick (opaque)
-    ("frames", ("hil/codec.py", "firmware/safety.py")),
+    ("frames", ("hil/transport/codec.py", "firmware/safety.py")),
     ("ecu_python", ("firmware/",)),                          # firmware Python on the path
-    ("plant", ("hil/plant.py", "hil/kernels/plant.py")),
-    ("sensors", ("hil/sensors.py", "hil/kernels/sensors.py")),
-    ("secoc", ("hil/secoc.py",)),
+    ("plant", ("hil/sim/plant.py", "hil/kernels/plant.py")),
+    ("sensors", ("hil/sim/sensors.py", "hil/kernels/sensors.py")),
+    ("secoc", ("hil/transport/secoc.py",)),
     ("nodes", ("hil/nodes.py",)),
 )
 
@@ -205,9 +206,9 @@ def sil_stage_us(duration_s: float) -> dict:
     import cProfile
     import pstats
 
-    from hil import sil
+    from hil.nodes import sil
     from hil.config import default_vehicle
-    from hil.road import load_route
+    from hil.sim.road import load_route
 
     def drive():
         return sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
@@ -233,8 +234,8 @@ def sil_stage_us(duration_s: float) -> dict:
 def secoc_us(n: int = 20000) -> tuple[float, float]:
     """SecOC per ACTUATOR_CMD frame: (sign, verify) in microseconds, median of 5 runs of
     ``n`` frames (the sender's protect; the receiver's verify of each in order)."""
-    from hil import secoc
-    from hil.codec import Codec
+    from hil.transport import secoc
+    from hil.transport.codec import Codec
 
     codec = Codec()
     lay = secoc.layout(codec, "ACTUATOR_CMD")

@@ -37,7 +37,7 @@ def hil_sim_wall_s(duration_s: float, runs: int = 3) -> float:
 
 def hil_run(pace: str, duration_s: float | None, tester: bool = False) -> dict:
     """``hil run`` over the hub; its ``bench`` figures. ``tester``: a UDS tester on the hub
-    (udsoncan, authenticated with the run's secret, ``hil.diag``) reads four DIDs every
+    (udsoncan, authenticated with the run's secret, ``hil.apps.diag``) reads four DIDs every
     ``TESTER_EVERY_TICKS`` ms while the bench drives (``_uds_poller``); its requests and
     errors (requests before the ECU was up) are added."""
     import threading
@@ -91,9 +91,9 @@ def _uds_poller(url: str, out: Path, stop, polled: dict, duration_s: float) -> N
     first answer (its process is up: the drive starts) for the drive's duration less a second,
     so that it stops before the bench does (a request cut off by the hub closing leaves
     udsoncan's threads printing errors)."""
-    from hil.bus import resolve
-    from hil.diag import client, tester_bus
-    from hil.secoc import load_key
+    from hil.transport.bus import resolve
+    from hil.apps.diag import client, tester_bus
+    from hil.transport.secoc import load_key
 
     import logging
 
@@ -129,11 +129,11 @@ def campaign_throughput(quick: bool, tmp: Path) -> dict:
     """A small campaign (``city``, six seeds; quick: 4 s, two seeds) three ways: a LocalCluster
     of 1 and of 2 workers, and a ``dask scheduler`` with two ``dask worker`` processes on
     127.0.0.1, as a real cluster runs. Simulated seconds per wall second of the whole
-    ``hil.campaign.run`` (cluster start and the workers' first imports included), and whether
+    ``hil.validate.campaign.run`` (cluster start and the workers' first imports included), and whether
     the three gave the same trace hashes."""
     import sqlite3
 
-    from hil import campaign as cp
+    from hil.validate import campaign as cp
 
     seeds = "[1, 2]" if quick else "{from = 1, to = 6}"
     dur = 4.0 if quick else 40.0

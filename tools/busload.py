@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 
 from hil.cli import add_json_argument, emit
-from hil.codec import DBC_PATH, Codec
+from hil.transport.codec import DBC_PATH, Codec
 
 
 def frame_bits(dlc: int, worst_case: bool = True) -> int:

@@ -38,7 +38,7 @@ def compile_c(out: Path, sources, *extra, gen: Path = GEN) -> Path:
 
 
 def replay_input(rec) -> str:
-    """A fixed-point run's record (``hil.sil.run(fx_record=...)``: per tick the
+    """A fixed-point run's record (``hil.nodes.sil.run(fx_record=...)``: per tick the
     ``firmware.fx.state.TickIn`` and the outputs) as ``trace_replay``'s stdin."""
     def line(i):
         counts = [-1 if v is None else v for v in i.counts]

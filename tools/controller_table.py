@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
 from calib.model import linear_model
-from hil.road import constant_route, gq_of
+from hil.sim.road import constant_route, gq_of
 from calib.linear import physical_limits
 
 # controller -> the mode it runs in
@@ -24,7 +24,7 @@ GRADES = "ABCD"
 
 def _one(job):
     vehicle, grade, controller, mode, seconds, seed = job
-    from hil import sil
+    from hil.nodes import sil
     from hil.config import load_vehicle
 
     cfg = load_vehicle(vehicle)

@@ -40,7 +40,7 @@ def export(out: Path, formats=FORMATS, dbc: Path | None = None) -> dict[str, Pat
     """Write each format into ``out``; returns format -> path."""
     import canmatrix.formats
 
-    from hil.codec import DBC_PATH
+    from hil.transport.codec import DBC_PATH
 
     dbc = Path(dbc or DBC_PATH)
     out.mkdir(parents=True, exist_ok=True)
@@ -154,7 +154,7 @@ def _compu_method(cm, sig, q) -> None:
     for value, name in sorted((sig.choices or {}).items()):
         const = lxml.etree.SubElement(scale(int(value), int(value)), q("COMPU-CONST"))
         lxml.etree.SubElement(const, q("VT")).text = str(name)
-    from hil.codec import declared_raw_range
+    from hil.transport.codec import declared_raw_range
 
     lo, hi = declared_raw_range(sig)
     coeffs = lxml.etree.SubElement(scale(lo, hi), q("COMPU-RATIONAL-COEFFS"))
@@ -176,7 +176,7 @@ def _reference(dbc: Path):
 
 def check(fmt: str, path: Path, dbc: Path | None = None) -> list[str]:
     """The differences between an exported file, loaded back, and the DBC (empty: none)."""
-    from hil.codec import DBC_PATH
+    from hil.transport.codec import DBC_PATH
 
     dbc = Path(dbc or DBC_PATH)
     ref = _reference(dbc)

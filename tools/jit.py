@@ -38,11 +38,12 @@ def nodes() -> None:
     """The nodes of ``hil run`` warmed up (``hil.nodes.warm_up``: the ECU's tick called
     from Python, on both paths; the plant's step and sensors)."""
     from calib.fx_tables import build_tables
-    from hil import secoc, sil
-    from hil.codec import Codec
+    from hil.transport import secoc
+    from hil.nodes import sil
+    from hil.transport.codec import Codec
     from hil.config import default_vehicle
     from hil.nodes import EcuNode, PlantNode, warm_up
-    from hil.road import load_route
+    from hil.sim.road import load_route
 
     cfg, codec, key = default_vehicle(), Codec(), secoc.new_key()
     p = sil.ecu_params(cfg, "auto")

@@ -16,10 +16,10 @@ from pathlib import Path
 from calib.ecu_params import default_gains_path
 from calib.galqr import tune, vehicle_digest
 from calib.options import NOMINAL_SPEED_MPS
-from hil import sil
+from hil.nodes import sil
 from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
-from hil.config import VehicleConfig
-from hil.road import constant_route
+from calib.vehicle import VehicleConfig
+from hil.sim.road import constant_route
 
 
 def confirm_by_simulation(cfg: VehicleConfig, K: list, seconds: float, seed: int) -> dict:

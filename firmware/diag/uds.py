@@ -1,6 +1,6 @@
 """The UDS server (ISO 14229-1) as a pure function: one request's bytes in, the response's
 bytes out (None: no response, as with suppressPosRspMsgIndicationBit). The ISO-TP transport
-around it is the node's (``hil.diag``).
+around it is the node's (``hil.apps.diag``).
 
 Services: 0x10 DiagnosticSessionControl (01 default, 03 extended; S3 5 s), 0x3E TesterPresent,
 0x22 ReadDataByIdentifier (``DIDS``), 0x19 ReadDTCInformation (01, 02, 04, 06, 0A), 0x14

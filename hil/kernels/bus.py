@@ -3,7 +3,7 @@
 ``MSG`` table, in ``MESSAGES``' order), the signals they pack and unpack (``U_*``: rows of
 ``FIELD``, in ``USES``' order; ECU_STATUS's fault signals follow, one per bit of the fault
 word), the ECU's and the plant's receivers (``R_*``) and the SecOC rows (``S_*``).
-``hil.codec.Codec.bus_tables`` lays the tables out from the DBC.
+``hil.transport.codec.Codec.bus_tables`` lays the tables out from the DBC.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """AES-128 CMAC (NIST SP 800-38B) from OpenSSL's libcrypto, for compiled code: the SecOC
-authenticator of a frame without leaving the compiled tick (``hil.secoc`` computes the same
+authenticator of a frame without leaving the compiled tick (``hil.transport.secoc`` computes the same
 with the ``cryptography`` package, which binds the same library).
 
 libcrypto's ``CMAC_*`` functions are bound by symbol (``firmware.kernels.external``), so the

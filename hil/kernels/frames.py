@@ -1,6 +1,6 @@
-"""CAN frames in compiled code: the same bytes and the same receive checks as ``hil.codec`` and
+"""CAN frames in compiled code: the same bytes and the same receive checks as ``hil.transport.codec`` and
 ``firmware.safety`` (which stay the reference: ``tests/test_frames.py`` holds the two
-together), over tables laid out once from the DBC (``hil.codec.Codec.frame_tables``).
+together), over tables laid out once from the DBC (``hil.transport.codec.Codec.frame_tables``).
 
 Tables (structured arrays, one row each):
 
@@ -86,7 +86,7 @@ def store(buf, dlc, w) -> None:
 @njit
 def put(w, f, v):
     """``w`` with the raw value ``v`` of field ``f`` packed in, saturated at its raw range
-    (``hil.codec._pack_word``)."""
+    (``hil.transport.codec._pack_word``)."""
     v = int(v)
     if v > f.hi:
         v = int(f.hi)
@@ -97,7 +97,7 @@ def put(w, f, v):
 
 @njit
 def to_raw(f, value):
-    """A physical value as the field's raw integer (``hil.codec._to_raw``: half away from
+    """A physical value as the field's raw integer (``hil.transport.codec._to_raw``: half away from
     zero, saturated at the declared range; NaN: 0 or the nearest end of the range)."""
     if math.isnan(value):
         return min(f.dhi, max(f.dlo, 0))
@@ -196,7 +196,7 @@ def in_range(F, m, w):
 
 @njit
 def receive(F, m, rx, buf, n, tick):
-    """``check``, then the range of every ranged signal (``hil.codec`` ``decode``'s order);
+    """``check``, then the range of every ranged signal (``hil.transport.codec`` ``decode``'s order);
     True for a usable frame. A frame out of range invalidates the message (RANGE)."""
     if not check(m, rx, buf, n, tick):
         return False

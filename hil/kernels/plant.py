@@ -1,4 +1,4 @@
-"""The plant's compiled kernels (``hil.plant`` is the model): the active corner's exact step with
+"""The plant's compiled kernels (``hil.sim.plant`` is the model): the active corner's exact step with
 its energy ledger in one call, the accelerations and what the sensors see, the passive twin's
 batch run, the energy quadratic forms. Explicit loops in a fixed order (``firmware.kernels``):
 the same bits compiled or interpreted."""
@@ -14,7 +14,7 @@ from firmware.kernels import njit
 N_AUG = 10
 VS, VT, ZS, ZT, CUR, ZF, VOLT, ZFDOT, FB, FW = range(N_AUG)
 
-# The ledger's running sums, in the compiled step's accumulator array (hil.plant.QuarterCarPlant._acc).
+# The ledger's running sums, in the compiled step's accumulator array (hil.sim.plant.QuarterCarPlant._acc).
 ACC = ("road_in_j", "nonlinear_work_j", "supply_drawn_j", "stored_j", "copper_loss_j",
        "damper_loss_j", "friction_loss_j", "screw_loss_j", "flyback_loss_j", "electromagnetic_j",
        "actuator_mech_j", "final_mech_j", "final_inductor_j")

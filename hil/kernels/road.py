@@ -1,4 +1,4 @@
-"""The road profile's compiled kernel (``hil.road`` is the model)."""
+"""The road profile's compiled kernel (``hil.sim.road`` is the model)."""
 
 from __future__ import annotations
 

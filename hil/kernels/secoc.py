@@ -1,4 +1,4 @@
-"""SecOC profile 1 in compiled code: ``hil.secoc``'s ``Sender.protect`` and
+"""SecOC profile 1 in compiled code: ``hil.transport.secoc``'s ``Sender.protect`` and
 ``Receiver.forged`` (the reference, ``tests/test_frames.py``) over a table row per secured
 message and direction, with libcrypto's AES-CMAC (``hil.kernels.cmac``).
 

@@ -1,4 +1,4 @@
-"""The sensors' compiled kernels (``hil.sensors`` is the model): noise and ADC quantisation of one
+"""The sensors' compiled kernels (``hil.sim.sensors`` is the model): noise and ADC quantisation of one
 sample of every channel, rounding half away from zero, saturating at the rails."""
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def quantise_into(values, z, std, gain, range_min, lsb, full, out) -> None:
 
 @njit
 def to_counts(v, range_min, lsb, full):
-    """``hil.sensors.to_counts``: a value as ADC counts, NaN at the lower rail, rounded half
+    """``hil.sim.sensors.to_counts``: a value as ADC counts, NaN at the lower rail, rounded half
     away from zero, saturated at 0 and ``full``."""
     if math.isnan(v):
         return 0

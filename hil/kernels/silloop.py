@@ -1,9 +1,9 @@
 """The SIL's lockstep loop compiled (issue 37): the plant, ECU and driver-app nodes of
 ``hil.nodes`` and the bus between them as one numba function that runs tick after tick until
-the next event of Python's calendar (``hil.fastsil``: a block of sensor noise, progress, a
+the next event of Python's calendar (``hil.nodes.fastsil``: a block of sensor noise, progress, a
 fault campaign's window), the same frames in the same order as ``hil.nodes.run_in_process``
 and the same bytes (``tests/test_silloop.py`` holds the two together; ``run_in_process``
-stays the path of the runs this loop does not cover: ``hil.fastsil.eligible``).
+stays the path of the runs this loop does not cover: ``hil.nodes.fastsil.eligible``).
 
 Per tick k, as ``hil.nodes``' docstring tells the protocol: the plant samples its sensors and
 sends VEHICLE_SPEED, PLANT_SUPPLY, SIM_TRUTH (every 10 ms), ENERGY_STATUS (100 ms) and
@@ -15,7 +15,7 @@ same calls ``hil.nodes.EcuNode`` makes in ``hil run``.
 
 State: the record ``Z`` (``SIL``: the plant's and the app's scalars, their transmit COUNTERs,
 the frames sent and seen per message) and the ECU node's record; the tables of
-``hil.kernels.bus``; the plant's arrays (``hil.plant.QuarterCarPlant``'s); the ECU's records
+``hil.kernels.bus``; the plant's arrays (``hil.sim.plant.QuarterCarPlant``'s); the ECU's records
 (``firmware``); the per-tick outputs (the plant's observations, the ECU's trace rows,
 the hashed rows, the frame log, the driver's requests, what the driver was told).
 """

@@ -85,14 +85,14 @@ BY_NAME = {s.name: s for s in SCENARIOS}
 
 def run(s: Scenario, trace: Optional[list] = None, ticks: Optional[list] = None) -> dict:
     """Run one scenario in process as ``hil sim --out`` does; the pinned values. ``trace`` (a
-    list) receives the run's per-tick trace (``hil.sil.SilTrace``), ``ticks`` (a list) the
+    list) receives the run's per-tick trace (``hil.nodes.sil.SilTrace``), ``ticks`` (a list) the
     ECU's per-tick inputs and outputs as columns (``tests.golden.ticks``)."""
-    from hil import sil
-    from hil.buslog import SIL_CHANNEL, BusLogFile, parse_start_time
+    from hil.nodes import sil
+    from hil.transport.buslog import SIL_CHANNEL, BusLogFile, parse_start_time
     from hil.cli import _clean
     from hil.config import load_vehicle
     from hil.nodes import LockstepClock
-    from hil.road import load_route
+    from hil.sim.road import load_route
 
     cfg = load_vehicle(ROOT / s.vehicle if s.vehicle else None)
     route = load_route(str(ROOT / s.route) if "/" in s.route else s.route)

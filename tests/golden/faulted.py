@@ -110,7 +110,7 @@ def drive(name: str) -> dict:
     from firmware.ecu import Ecu
     from firmware.diag.dtc import DTCS
     from hil.config import default_vehicle
-    from hil.sil import ecu_params
+    from hil.nodes.sil import ecu_params
     from tests import golden
 
     scenario, fixed, seed, n, reset_at, after = DRIVES[name]

@@ -41,7 +41,7 @@ def path(name: str) -> Path:
 
 
 def columns(packed: bytes) -> dict[str, np.ndarray]:
-    """The packed rows of a run (``hil.sil.run(hashed=...)``) as one array per field."""
+    """The packed rows of a run (``hil.nodes.sil.run(hashed=...)``) as one array per field."""
     rows = np.frombuffer(bytes(packed), dtype=DTYPE)
     return {name: np.ascontiguousarray(rows[name]) for name in DTYPE.names}
 

@@ -1,0 +1,220 @@
+"""The vehicle's types: what a vehicle file defines (the paper's Table 3 car by default), and
+its strict parsing from a TOML table.
+
+The ``[vehicle]`` table and its five keys are a contract. The other tables describe the parts
+the paper leaves open (actuator, sensors, nonlinearities); every key has a documented default
+in ``hil/vehicles/table3.toml`` (read by ``hil.config``) and may be overridden in a user file.
+Every problem raises :class:`~calib.errors.ConfigError`, whose message is one line naming the
+file and the key. These types sit below the calibration (``calib.model`` designs against them)
+and the bench (``hil`` simulates them)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from calib.errors import ConfigError
+
+GRAVITY_MPS2 = 9.80665
+
+
+def check_number(path: Path, key: str, value: Any, *, positive: bool,
+                 allow_zero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{path}: key '{key}' must be a number, got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ConfigError(f"{path}: key '{key}' must be finite, got {value}")
+    if positive and (value < 0.0 or (value == 0.0 and not allow_zero)):
+        bound = "non-negative" if allow_zero else "positive"
+        raise ConfigError(f"{path}: key '{key}' must be {bound}, got {value}")
+    return value
+
+
+def build_section(cls: type, table: Any, path: Path, name: str, base: Any = None,
+                  required: bool = False) -> Any:
+    """Build dataclass ``cls`` from TOML ``table`` strictly: unknown keys, wrong types and
+    out-of-range values are errors. Fields missing from ``table`` take ``base``'s value (or the
+    dataclass default) unless ``required``. Field metadata: ``positive`` (default True),
+    ``allow_zero``, ``upper`` (inclusive bound), ``integer``."""
+    if table is None:
+        table = {}
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{path}: '{name}' must be a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key in table:
+        if key not in fields:
+            known = ", ".join(sorted(fields))
+            raise ConfigError(f"{path}: unknown key '{name}.{key}' (known: {known})")
+    values = {}
+    for fname, field in fields.items():
+        full = f"{name}.{fname}"
+        if fname not in table:
+            if required:
+                raise ConfigError(f"{path}: missing key '{full}'")
+            if base is not None:
+                values[fname] = getattr(base, fname)
+            continue
+        raw = table[fname]
+        meta = field.metadata
+        if meta.get("integer"):
+            if isinstance(raw, bool) or not isinstance(raw, int):
+                raise ConfigError(f"{path}: key '{full}' must be an integer, got {raw!r}")
+            lo, hi = meta.get("range", (1, 2**31))
+            if not lo <= raw <= hi:
+                raise ConfigError(f"{path}: key '{full}' must be in [{lo}, {hi}], got {raw}")
+            values[fname] = raw
+            continue
+        if meta.get("kind") == "bool":
+            if not isinstance(raw, bool):
+                raise ConfigError(f"{path}: key '{full}' must be true or false, got {raw!r}")
+            values[fname] = raw
+            continue
+        value = check_number(path, full, raw, positive=meta.get("positive", True),
+                        allow_zero=meta.get("allow_zero", False))
+        upper = meta.get("upper")
+        if upper is not None and value > upper:
+            raise ConfigError(f"{path}: key '{full}' must be <= {upper}, got {value}")
+        values[fname] = value
+    return cls(**values)
+
+
+def _pos(**extra: Any) -> Any:
+    return dataclasses.field(metadata={"positive": True, **extra})
+
+
+def _nonneg() -> Any:
+    return dataclasses.field(metadata={"positive": True, "allow_zero": True})
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Quarter-car parameters (paper Table 3)."""
+
+    sprung_mass_kg: float = _pos()
+    unsprung_mass_kg: float = _pos()
+    spring_stiffness_n_per_m: float = _pos()
+    damping_n_s_per_m: float = _pos()
+    tire_stiffness_n_per_m: float = _pos()
+
+    @property
+    def static_tire_load_n(self) -> float:
+        return (self.sprung_mass_kg + self.unsprung_mass_kg) * GRAVITY_MPS2
+
+
+@dataclass(frozen=True)
+class ActuatorParams:
+    """Ball-screw DC motor driven by an H-bridge; regeneration into a storage element."""
+
+    screw_lead_m: float = _pos()
+    torque_constant_nm_per_a: float = _pos()
+    winding_resistance_ohm: float = _pos()
+    winding_inductance_h: float = _pos()
+    screw_efficiency: float = dataclasses.field(metadata={"positive": True, "upper": 1.0})
+    viscous_friction_n_s_per_m: float = _nonneg()
+    current_limit_a: float = _pos()
+    bus_voltage_v: float = _pos()
+    storage_voltage_v: float = _pos()
+
+    @property
+    def force_constant_n_per_a(self) -> float:
+        """Ideal (lossless) force per ampere: K_t * 2*pi / lead; equals the back-EMF V/(m/s)."""
+        return self.torque_constant_nm_per_a * 2.0 * math.pi / self.screw_lead_m
+
+
+@dataclass(frozen=True)
+class NonlinearParams:
+    """Optional nonlinearities of the plant (off by default: the paper's model is linear)."""
+
+    bump_stops: bool = dataclasses.field(metadata={"kind": "bool"})
+    bump_stop_clearance_m: float = _pos()
+    bump_stop_stiffness_n_per_m: float = _pos()
+    tire_lift_off: bool = dataclasses.field(metadata={"kind": "bool"})
+
+
+@dataclass(frozen=True)
+class SensorChannel:
+    """One analogue channel: Gaussian noise then an ADC with ``bits`` over [min, max]."""
+
+    noise_std: float = _nonneg()
+    range_min: float = dataclasses.field(metadata={"positive": False})
+    range_max: float = dataclasses.field(metadata={"positive": False})
+    bits: int = dataclasses.field(metadata={"integer": True, "range": (2, 24)})
+
+    @property
+    def lsb(self) -> float:
+        return (self.range_max - self.range_min) / (2**self.bits - 1)
+
+
+SENSOR_NAMES = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
+# every channel of [sensors]: the five above (sampled together, hil.sim.sensors.SensorSuite) and
+# the supply voltage (sampled every 10 ms with its own noise stream)
+SENSOR_KEYS = (*SENSOR_NAMES, "supply_voltage")
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    body_accel: SensorChannel
+    wheel_accel: SensorChannel
+    susp_defl: SensorChannel
+    motor_current: SensorChannel
+    speed: SensorChannel
+    supply_voltage: SensorChannel
+
+
+@dataclass(frozen=True)
+class SimParams:
+    plant_dt_s: float = dataclasses.field(metadata={"positive": True, "upper": 0.01})
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Everything a vehicle file defines."""
+
+    vehicle: VehicleParams
+    actuator: ActuatorParams
+    nonlinear: NonlinearParams
+    sensors: SensorParams
+    sim: SimParams
+    source: str = "<default>"
+
+
+_TOP_LEVEL = ("vehicle", "actuator", "nonlinear", "sensors", "sim")
+
+
+def parse_vehicle(data: Mapping[str, Any], path: Path, base: VehicleConfig | None) -> VehicleConfig:
+    """A vehicle file's table as a :class:`VehicleConfig`: ``[vehicle]`` with its five keys
+    required; the other tables override ``base`` key by key (``base`` None: all required)."""
+    for key in data:
+        if key not in _TOP_LEVEL:
+            raise ConfigError(f"{path}: unknown table or key '{key}' (known: {', '.join(_TOP_LEVEL)})")
+    if "vehicle" not in data:
+        raise ConfigError(f"{path}: missing table '[vehicle]'")
+    vehicle = build_section(VehicleParams, data["vehicle"], path, "vehicle", required=True)
+    actuator = build_section(ActuatorParams, data.get("actuator"), path, "actuator",
+                             base.actuator if base else None, required=base is None)
+    nonlinear = build_section(NonlinearParams, data.get("nonlinear"), path, "nonlinear",
+                              base.nonlinear if base else None, required=base is None)
+    sim = build_section(SimParams, data.get("sim"), path, "sim", base.sim if base else None,
+                        required=base is None)
+    sensors_table = data.get("sensors", {})
+    if not isinstance(sensors_table, Mapping):
+        raise ConfigError(f"{path}: 'sensors' must be a table")
+    for key in sensors_table:
+        if key not in SENSOR_KEYS:
+            raise ConfigError(f"{path}: unknown key 'sensors.{key}' (known: {', '.join(SENSOR_KEYS)})")
+    channels = {}
+    for name in SENSOR_KEYS:
+        channel = build_section(SensorChannel, sensors_table.get(name), path, f"sensors.{name}",
+                                getattr(base.sensors, name) if base else None,
+                                required=base is None)
+        if channel.range_max <= channel.range_min:
+            raise ConfigError(f"{path}: key 'sensors.{name}.range_max' must exceed range_min")
+        channels[name] = channel
+    if actuator.storage_voltage_v > 10 * actuator.bus_voltage_v:
+        raise ConfigError(f"{path}: key 'actuator.storage_voltage_v' is implausibly high")
+    return VehicleConfig(vehicle=vehicle, actuator=actuator, nonlinear=nonlinear,
+                         sensors=SensorParams(**channels), sim=sim, source=str(path))
