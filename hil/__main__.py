@@ -37,9 +37,27 @@ def main(argv: list[str] | None = None) -> int:
         from hil.transport import vcan
 
         return vcan.main(argv[1:])
+    args = _parser(argv).parse_args(argv)
+    apply_cache_argument(args)
+    return _COMMANDS.get(args.command, _drive)(args)
+
+
+def _parser(argv: list[str]) -> argparse.ArgumentParser:
+    """Every command's parser; the bus commands' only when they can be asked for."""
     parser = argparse.ArgumentParser(prog="python -m hil", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
+    bus_parsers = not (argv[:1] and argv[0] in OTHER_COMMANDS)
+    _tool_parsers(sub, bus_parsers)
+    _campaign_parsers(sub)
+    _sim_parser(sub)
+    if bus_parsers:
+        _node_parsers(sub)
+        _faults_parser(sub)
+    return parser
+
+
+def _tool_parsers(sub, bus_parsers: bool) -> None:
     p = sub.add_parser("drive", help="drive the passive car along a route; RMS per segment "
                                      "against the exact (Lyapunov) values")
     p.add_argument("--route", default="full_road_section",
@@ -63,7 +81,6 @@ def main(argv: list[str] | None = None) -> int:
     add_json_argument(p)
     from hil.validate import alarms
 
-    bus_parsers = not (argv[:1] and argv[0] in OTHER_COMMANDS)
     if bus_parsers:
         from hil.apps import diag
 
@@ -75,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
                                      "it holds; --clear empties it")
     p.add_argument("--clear", action="store_true")
     add_json_argument(p)
+
+
+def _campaign_parsers(sub) -> None:
     p = sub.add_parser("campaign", help="a validation campaign (a matrix of SIL cases) on "
                                         "Dask, results in SQLite (hil/validate/campaign.py)")
     p.add_argument("file", metavar="FILE.toml")
@@ -95,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("db", metavar="DB")
     p.add_argument("--out", metavar="DIR", help="where ratios.png goes (default: beside DB)")
     add_json_argument(p)
+
+
+def _sim_parser(sub) -> None:
     p = sub.add_parser("sim", help="software-in-the-loop: the whole ECU against the plant, "
                                    "with a passive twin on the same road")
     p.add_argument("--route", default="full_road_section",
@@ -119,92 +142,6 @@ def main(argv: list[str] | None = None) -> int:
     add_json_argument(p)
     verdict.add_arguments(p)
     _driver_arguments(p)
-    if bus_parsers:
-        _node_parsers(sub)
-    args = parser.parse_args(argv)
-    apply_cache_argument(args)
-
-    if args.command == "sim":
-        return _sim(args)
-    if args.command == "run":
-        from hil.bench import supervisor
-
-        return supervisor.run(args)
-    if args.command in ("ecu", "plant", "app"):
-        from hil.bench import procs
-
-        return procs.main(args.command, args)
-    if args.command in ("campaign", "campaign-report", "campaign-case"):
-        from hil.validate import campaign
-
-        return {"campaign": campaign.main, "campaign-report": campaign.report_main,
-                "campaign-case": campaign.case_main}[args.command](args)
-    if args.command == "faults":
-        from hil.validate import faults
-
-        return faults.main(args)
-
-    if args.command in ("diag", "alarms"):
-        from hil.validate import alarms
-        from hil.apps import diag
-
-        return (diag if args.command == "diag" else alarms).main(args)
-    if args.command == "cache":
-        from calib import cache
-        from hil.cli import emit
-
-        removed = cache.clear() if args.clear else 0
-        entries = sorted(cache.directory().rglob("*.pickle")) if cache.directory().is_dir() \
-            else []
-        info = {"directory": str(cache.directory()), "enabled": cache.enabled(),
-                "entries": len(entries), "bytes": sum(p.stat().st_size for p in entries),
-                "removed": removed}
-        emit(info, args.json, lambda r: print(
-            f"design cache {r['directory']}: {r['entries']} entries, {r['bytes']} bytes"
-            + (f" ({r['removed']} removed)" if args.clear else "")
-            + ("" if r["enabled"] else "; off in this environment (SUSPENSION_NO_CACHE)")))
-        return 0
-    if args.command == "keygen":
-        from hil.transport import secoc
-        from hil.cli import fail
-
-        try:
-            secoc.write_key(args.file)
-        except FileExistsError:
-            fail(f"{args.file} exists; a key file is never overwritten")
-        except OSError as exc:
-            fail(f"{args.file}: {exc.strerror or exc}")
-        print(f"wrote {args.file} (AES-128 key, mode 0600)")
-        return 0
-    if args.command == "logdiff":
-        import json
-
-        from hil.transport.buslog import compare, render_compare
-        from hil.cli import fail
-
-        try:
-            c = compare(args.reference, args.other)
-        except (OSError, ValueError) as exc:
-            fail(f"cannot read the logs: {exc}")
-        print(json.dumps(c, indent=1) if args.json else render_compare(c))
-        return 0 if c["equal"] else 1
-    if args.command == "routes":
-        from hil.sim.road import load_route, shipped_routes
-
-        for name in shipped_routes():
-            r = load_route(name)
-            print(f"{name:20s} {len(r.segments):2d} segments  {r.length_m:7.0f} m  "
-                  f"{r.duration_s:6.1f} s  {r.description}")
-        return 0
-
-    from hil.report.render import drive_report, finish, render_drive
-
-    cfg = vehicle_or_exit(args.vehicle)
-    route = route_or_exit(args.route).with_convention(args.convention)
-    report = drive_report(cfg, route, args.seed, nonlinear=args.nonlinear,
-                          show_progress=not args.json)
-    finish(report, args.out, "drive.json", args.json, render_drive)
-    return 0
 
 
 MODE_CHOICES = config.MODE_CHOICES
@@ -319,6 +256,10 @@ def _node_parsers(sub) -> None:
     _inject_argument(p)
     common(p)
 
+
+def _faults_parser(sub) -> None:
+    from can.cli import add_bus_arguments
+
     p = sub.add_parser("faults", help="reliability: the fault-injection campaign over the bus; "
                                       "a table (or --json), DIR/faults.json; exit 1 if a fault "
                                       "is missed, crashes a node or is handled too late")
@@ -393,6 +334,116 @@ def _sim(args) -> int:
         print(f"report: {Path(args.out) / 'report.md'} (and report.json, bus.log, figures)")
     return verdict.exit_code(report)
 
+
+def _run(args) -> int:
+    from hil.bench import supervisor
+    from hil.bench.spec import RunSpec
+
+    return supervisor.run(RunSpec.from_args(args))
+
+
+def _node(args) -> int:
+    from hil.bench import procs
+
+    return procs.main(args.command, args)
+
+
+def _campaign(args) -> int:
+    from hil.validate import campaign
+
+    return {"campaign": campaign.main, "campaign-report": campaign.report_main,
+            "campaign-case": campaign.case_main}[args.command](args)
+
+
+def _faults(args) -> int:
+    from hil.validate import faults
+
+    return faults.main(args)
+
+
+def _diag(args) -> int:
+    from hil.apps import diag
+
+    return diag.main(args)
+
+
+def _alarms(args) -> int:
+    from hil.validate import alarms
+
+    return alarms.main(args)
+
+
+def _cache(args) -> int:
+    from calib import cache
+    from hil.cli import emit
+
+    removed = cache.clear() if args.clear else 0
+    entries = sorted(cache.directory().rglob("*.pickle")) if cache.directory().is_dir() \
+        else []
+    info = {"directory": str(cache.directory()), "enabled": cache.enabled(),
+            "entries": len(entries), "bytes": sum(p.stat().st_size for p in entries),
+            "removed": removed}
+    emit(info, args.json, lambda r: print(
+        f"design cache {r['directory']}: {r['entries']} entries, {r['bytes']} bytes"
+        + (f" ({r['removed']} removed)" if args.clear else "")
+        + ("" if r["enabled"] else "; off in this environment (SUSPENSION_NO_CACHE)")))
+    return 0
+
+
+def _keygen(args) -> int:
+    from hil.cli import fail
+    from hil.transport import secoc
+
+    try:
+        secoc.write_key(args.file)
+    except FileExistsError:
+        fail(f"{args.file} exists; a key file is never overwritten")
+    except OSError as exc:
+        fail(f"{args.file}: {exc.strerror or exc}")
+    print(f"wrote {args.file} (AES-128 key, mode 0600)")
+    return 0
+
+
+def _logdiff(args) -> int:
+    import json
+
+    from hil.cli import fail
+    from hil.transport.buslog import compare, render_compare
+
+    try:
+        c = compare(args.reference, args.other)
+    except (OSError, ValueError) as exc:
+        fail(f"cannot read the logs: {exc}")
+    print(json.dumps(c, indent=1) if args.json else render_compare(c))
+    return 0 if c["equal"] else 1
+
+
+def _routes(args) -> int:
+    from hil.sim.road import load_route, shipped_routes
+
+    for name in shipped_routes():
+        r = load_route(name)
+        print(f"{name:20s} {len(r.segments):2d} segments  {r.length_m:7.0f} m  "
+              f"{r.duration_s:6.1f} s  {r.description}")
+    return 0
+
+
+def _drive(args) -> int:
+    from hil.report.render import drive_report, finish, render_drive
+
+    cfg = vehicle_or_exit(args.vehicle)
+    route = route_or_exit(args.route).with_convention(args.convention)
+    report = drive_report(cfg, route, args.seed, nonlinear=args.nonlinear,
+                          show_progress=not args.json)
+    finish(report, args.out, "drive.json", args.json, render_drive)
+    return 0
+
+
+_COMMANDS = {"sim": _sim, "run": _run, "ecu": _node, "plant": _node,
+             "app": _node, "campaign": _campaign, "campaign-report": _campaign,
+             "campaign-case": _campaign, "faults": _faults, "diag": _diag, "alarms": _alarms,
+             "cache": _cache, "keygen": _keygen, "logdiff": _logdiff, "routes": _routes,
+             "drive": _drive}
 
 if __name__ == "__main__":
     from hil.cli import run_main

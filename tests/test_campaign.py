@@ -286,7 +286,7 @@ def test_relative_acceptance_moves_the_ba_and_dtd_bounds_by_the_vehicles_own_lim
     for case in camp.cases:
         cfg, route = cp.vehicle_config(case["vehicle"], 1.0), cp.route_of(case["route"])
         judged[case["vehicle"]["name"]] = {
-            acc: cp._judge(cfg, route, route.segments[0], seg, "auto", acc)
+            acc: cp.judge_segment(cfg, route, route.segments[0], seg, "auto", acc)
             for acc in (True, "relative")}
     default, suv = judged["default"], judged["suv"]
     assert not default[True]["ok"] and not default["relative"]["ok"]   # the same bound
@@ -316,7 +316,7 @@ def test_a_segment_under_the_road_holding_override_is_judged_by_the_mode_it_was_
     def judged(modes, share):
         seg = {"grade": "D", "speed_mps": 20.0, "scored": True, "ratio": ratio,
                "modes": modes, "road_holding_share": share}
-        return cp._judge(cfg, route, d, seg, "auto", True)
+        return cp.judge_segment(cfg, route, d, seg, "auto", True)
 
     whole = judged({"safety": 1.0}, 1.0)
     assert whole["mode"] == "safety" and whole["limit_name"] == "safety_dtd" and whole["ok"]

@@ -17,7 +17,7 @@ from pathlib import Path
 import can
 import pytest
 
-from hil.transport import vcan
+from hil.transport import vcan_guest
 from hil.transport.bus import SocketcanTap
 from hil.transport.buslog import SIL_CHANNEL, compare, same_channel
 from tests import golden
@@ -49,14 +49,14 @@ def test_full_road_section_on_vcan0_is_the_hub_run_and_candump_agrees(tmp_path):
     selection picks vcan0; the trace and the log are the golden SIL's (which the hub run
     equals, tests/test_hil.py); candump, beside the bench, recorded the same frames in the
     same order; the logger lost nothing and the kernel reports no drop."""
-    rec = vcan.start_candump(tmp_path / "candump.log")
+    rec = vcan_guest.start_candump(tmp_path / "candump.log")
     try:
         proc = hil("run", "--route", "full_road_section", "--mode", "auto", "--seed", "1",
                    "--pace", "lockstep", "--out", str(tmp_path / "run"), "--json",
                    "--key-file", str(golden.key_file(tmp_path)), "--start-time",
                    golden.START_TIME)
     finally:
-        assert vcan.stop_candump(rec)
+        assert vcan_guest.stop_candump(rec)
     rep = run_json(proc)
     assert "bus: socketcan vcan0" in proc.stderr             # auto chose the kernel's bus
     assert rep["bench"]["bus"] == "socketcan"

@@ -148,13 +148,12 @@ def test_the_road_holding_override_is_counted_apart_from_the_mode_switches():
 def test_a_run_whose_nodes_wrote_nothing_still_leaves_a_failing_report(tmp_path, capsys):
     """A bench that failed before any node wrote its record (the hub never opened, a node
     died at start) leaves report.json and report.md marked incomplete, verdict fail."""
-    import argparse
+    from hil.bench.runreport import partial_report
+    from hil.bench.spec import RunSpec
 
-    from hil.bench.supervisor import _partial_report
-
-    args = argparse.Namespace(mode="comfort", controller=None, seed=1, driver="accept",
-                              pace="lockstep", junit=str(tmp_path / "j.xml"), json=False)
-    _partial_report(tmp_path, default_vehicle(), load_route(B20), args, 4000, 0.001, None,
+    args = RunSpec(mode="comfort", seed=1, driver="accept", pace="lockstep",
+                   junit=str(tmp_path / "j.xml"))
+    partial_report(tmp_path, default_vehicle(), load_route(B20), args, 4000, 0.001, None,
                     "the CAN hub did not open its port")
     assert "could not write" not in capsys.readouterr().err
     rep = json.loads((tmp_path / "report.json").read_text())

@@ -73,7 +73,7 @@ def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     from firmware.ecu import Ecu
     from hil.nodes import sil
     from hil.config import default_vehicle
-    from hil.nodes import _HASHED
+    from hil.nodes.ecu import HASHED_ROW
     from hil.sim.road import load_route
 
     rows = bytearray()
@@ -84,7 +84,7 @@ def ecu_step_times(duration_s: float, fixed_point: bool) -> np.ndarray:
     ecu = Ecu(p, build_tables(p) if fixed_point else None)
     none = lambda v: None if v < 0 else v          # noqa: E731
     times: list[int] = []
-    for r in _HASHED.iter_unpack(bytes(rows)):
+    for r in HASHED_ROW.iter_unpack(bytes(rows)):
         inp = Inputs(r[0], none(r[1]), none(r[2]), none(r[3]), none(r[4]), none(r[5]),
                      r[7], r[8], r[9], r[10], none(r[6]))
         t0 = time.perf_counter_ns()

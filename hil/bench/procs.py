@@ -108,28 +108,35 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
     soon as the command answering them is in (ACTUATOR_CMD.SENSOR_SEQ) and builds the next
     frames, or, a missed deadline, at the next deadline with the latest valid command.
     ``cmd_rtt_*``: from the sensor frames to their command."""
+    if pace == "lockstep":
+        _run_lockstep(node, bus, stop)
+        return {"pace": pace}
+    return {"pace": pace, **_run_realtime(node, bus, stop)}
+
+
+def _run_lockstep(node, bus: can.BusABC, stop: Stop) -> None:
+    while not node.done and not stop.flag:
+        _send(bus, node.emit())
+        deadline = time.monotonic() + PARTNER_TIMEOUT_S
+        while not node.ready() and not stop.flag:
+            # (checked on every frame: a flood of invalid commands must not hold it off)
+            if time.monotonic() > deadline:
+                raise PartnerSilent(f"no valid ACTUATOR_CMD for tick {node.k} within "
+                                    f"{PARTNER_TIMEOUT_S:g} s ({node.bad_cmd_frames} "
+                                    f"invalid); are the ECU and the app running on this "
+                                    f"bus?")
+            msg = bus.recv(0.5)
+            if msg is not None:
+                node.on_frame(msg.arbitration_id, bytes(msg.data))
+        if stop.flag:
+            break
+        node.step()
+
+
+def _run_realtime(node, bus: can.BusABC, stop: Stop) -> dict:
     from hil.nodes import ID
 
     cmd_id = ID["ACTUATOR_CMD"]
-    stats: dict = {"pace": pace}
-    if pace == "lockstep":
-        while not node.done and not stop.flag:
-            _send(bus, node.emit())
-            deadline = time.monotonic() + PARTNER_TIMEOUT_S
-            while not node.ready() and not stop.flag:
-                # (checked on every frame: a flood of invalid commands must not hold it off)
-                if time.monotonic() > deadline:
-                    raise PartnerSilent(f"no valid ACTUATOR_CMD for tick {node.k} within "
-                                        f"{PARTNER_TIMEOUT_S:g} s ({node.bad_cmd_frames} "
-                                        f"invalid); are the ECU and the app running on this "
-                                        f"bus?")
-                msg = bus.recv(0.5)
-                if msg is not None:
-                    node.on_frame(msg.arbitration_id, bytes(msg.data))
-            if stop.flag:
-                break
-            node.step()
-        return stats
     dt = node.dt
     lags = np.zeros(node.n)
     rtts = np.full(node.n, np.nan)      # sensor frames sent -> their command in, per tick
@@ -179,7 +186,15 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
             missed += 1
             missed_at[k] = True
             node.step()
-    lag = lags[:node.k - k0] * 1e6
+    return _realtime_stats(node, lags[:node.k - k0] * 1e6, rtts[k0:node.k], missed,
+                           missed_at[:node.k])
+
+
+def _realtime_stats(node, lag, rtt, missed: int, missed_at) -> dict:
+    """The realtime plant's deadline figures (µs): lags of its sends behind their deadlines,
+    missed deadlines, and the command round trip."""
+    dt = node.dt
+    stats: dict = {}
     stats.update({
         "ticks": int(len(lag)),
         "missed_deadlines": missed,
@@ -188,9 +203,8 @@ def run_plant(node, bus: can.BusABC, pace: str, stop: Stop) -> dict:
         "lag_p99_us": float(np.percentile(lag, 99)) if len(lag) else 0.0,
         "lag_max_us": float(lag.max()) if len(lag) else 0.0,
         "overruns": int(np.count_nonzero(lag > dt * 1e6)),
-        MISSED_AT: missed_at[:node.k],
+        MISSED_AT: missed_at,
     })
-    rtt = rtts[k0:node.k]
     rtt = rtt[np.isfinite(rtt)] * 1e6
     if len(rtt):
         stats.update({"cmd_rtt_p50_us": float(np.percentile(rtt, 50)),
@@ -267,7 +281,7 @@ def quiet_gc() -> None:
 
 def _injector(args, node: str):
     """The fault injector of ``hil faults`` (``--inject PLAN``), or None."""
-    plan = getattr(args, "inject", None)
+    plan = args.inject
     if not plan:
         return None
     from hil.faults.injector import Injector
@@ -297,19 +311,14 @@ def _tell_driver(t: float, faults: int, reason: int) -> None:
     print(f"app: t={t:7.2f} s  ECU faults: {what}{state}", file=sys.stderr, flush=True)
 
 
-def main(role: str, args) -> int:
+def _make_node(role: str, args, codec):
+    """The node ``role`` of the command line: the configuration checked first (one line and
+    exit 2 on a bad file), then the key, then the node."""
     from hil.cli import design_or_exit, fail, key_or_exit, route_or_exit, vehicle_or_exit
-    from hil.transport.codec import Codec
     from hil.config import ConfigError, load_driver_script
 
-    out = Path(args.out) if args.out else None
-    stop = Stop()
-    sched = set_rt_priority(getattr(args, "rt_priority", 0) or 0)
-    if "refused" in sched:
-        print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
-    codec = Codec()
     cfg = vehicle_or_exit(args.vehicle)
-    try:                            # the configuration first, then the key, then the node
+    try:
         if role == "plant":
             from hil.nodes.sil import check_route
 
@@ -334,26 +343,37 @@ def main(role: str, args) -> int:
         node = PlantNode(cfg, route, args.seed, codec, inject=_injector(args, "plant"), key=key)
         if args.duration is not None:
             node.n = min(node.n, int(round(args.duration / node.dt)))
-    elif role == "ecu":
+        return node
+    if role == "ecu":
         from hil.nodes import EcuNode
 
-        node = EcuNode(p, codec, lockstep=args.pace == "lockstep",
+        return EcuNode(p, codec, lockstep=args.pace == "lockstep",
                        fixed_point=args.fixed_point, key=key)
-    else:
-        from hil.nodes.sil import app_node
+    from hil.nodes.sil import app_node
 
-        node = app_node(codec, args.mode, cfg.sim.plant_dt_s, args.policy, script,
-                        args.reaction_s, key=key)
-        node.inject = _injector(args, "app")
-        if not getattr(args, "quiet", False):
-            node.on_request = lambda t, kind, mode: print(
-                f"app: t={t:7.2f} s  sent {kind} {_mode_name(mode)}", file=sys.stderr,
-                flush=True)
-            node.on_faults = _tell_driver
-            node.on_recommend = lambda t, rec, active: _tell_recommendation(node, t)
+    node = app_node(codec, args.mode, cfg.sim.plant_dt_s, args.policy, script,
+                    args.reaction_s, key=key)
+    node.inject = _injector(args, "app")
+    if not args.quiet:
+        node.on_request = lambda t, kind, mode: print(
+            f"app: t={t:7.2f} s  sent {kind} {_mode_name(mode)}", file=sys.stderr, flush=True)
+        node.on_faults = _tell_driver
+        node.on_recommend = lambda t, rec, active: _tell_recommendation(node, t)
+    return node
+
+
+def main(role: str, args) -> int:
+    from hil.transport.codec import Codec
+
+    out = Path(args.out) if args.out else None
+    stop = Stop()
+    sched = set_rt_priority(args.rt_priority or 0)
+    if "refused" in sched:
+        print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
+    node = _make_node(role, args, Codec())
     try:
-        bus = open_node_bus(role, getattr(args, "interface", None),
-                            getattr(args, "channel", None))
+        bus = open_node_bus(role, getattr(args, "interface", None),   # (python-can: unset
+                            getattr(args, "channel", None))             #  unless given)
     except BusError as exc:
         print(f"{role}: {exc}", file=sys.stderr, flush=True)
         return EXIT_BUS
@@ -363,7 +383,7 @@ def main(role: str, args) -> int:
     if role == "app" and node.policy == "web":
         from hil.apps.webapp import WebApp
 
-        web = WebApp(node, port=getattr(args, "web_port", 0) or 0)
+        web = WebApp(node, port=args.web_port or 0)
         try:
             url = web.start()
         except OSError as exc:

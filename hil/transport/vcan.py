@@ -4,7 +4,7 @@ SocketCAN and ``vcan0`` up, on a host whose own kernel has no CAN.
 The kernel is User-mode Linux (Debian's ``user-mode-linux``: ``linux.uml``, an ordinary program,
 with its modules under ``/usr/lib/uml/modules/VERSION``). It boots with the host's root file
 system mounted read-write through ``hostfs``, so the project, its ``.venv`` and can-utils run
-inside unchanged. PID 1 is this module (``--guest``): it mounts /proc, /sys, /dev, /dev/pts,
+inside unchanged. PID 1 is ``hil.transport.vcan_guest``: it mounts /proc, /sys, /dev, /dev/pts,
 and tmpfs on /dev/shm and /run (the guest's own), brings ``lo`` up, loads ``can``,
 ``can-raw``, ``can-bcm``, ``can-dev`` and ``vcan`` (with the modules they depend on, from
 ``modules.dep``), creates ``vcan0``, runs the command with this process's environment and
@@ -24,7 +24,7 @@ nothing is mounted on the host. The run's files (a 0700 directory with the comma
 environment and the exit status) are removed at the end.
 
 On hosts with AMX (a larger XSAVE area than UML's), UML 6.1 cannot restore its guests' FPU
-state; ``hil/uml_xstate.c`` (built here with gcc, cached) is preloaded into ``linux.uml`` to
+state; ``hil/transport/uml_xstate.c`` (built here with gcc, cached) is preloaded into ``linux.uml`` to
 fix that, and does nothing where it is not needed. UML has one CPU and a 100 Hz tick: it is for
 functional tests of real SocketCAN, not for timing.
 """
@@ -32,7 +32,6 @@ functional tests of real SocketCAN, not for timing.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import hashlib
 import json
 import os
@@ -240,18 +239,7 @@ def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEF
     rundir = _run_dir()
     try:
         os.chmod(rundir, 0o700)
-        spec = {"argv": command, "cwd": os.getcwd(), "env": dict(os.environ),
-                "modules": [str(p) for p in modules], "interactive": interactive,
-                "tty": [os.isatty(1), os.isatty(2)], "candump": candump,
-                "rc": str(rundir / "rc")}
-        spec_path = rundir / "spec.json"
-        fd = os.open(spec_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as f:
-            json.dump(spec, f)
-        init = rundir / "init"
-        init.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m hil.transport.vcan --guest "
-                        f"{shlex.quote(str(spec_path))}\n")
-        init.chmod(0o700)
+        init = _guest_files(rundir, command, modules, interactive, candump)
         boot = rundir / "boot.log"
         env = dict(os.environ)
         if shim is not None:
@@ -276,25 +264,9 @@ def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEF
         for fd in (stdin_fd, out_fd, err_fd):
             if fd is not None:
                 os.close(fd)
-        deadline = time.monotonic() + timeout_s
-        previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
-        try:
-            while proc.poll() is None:
-                if time.monotonic() > deadline:
-                    print(f"vcan: timeout: {timeout_s:g} s passed; UML stopped",
-                          file=sys.stderr, flush=True)
-                    _end_group(proc)
-                    return EXIT_TIMEOUT
-                time.sleep(0.1)
-        except KeyboardInterrupt as exc:
-            print(f"vcan: interrupted{f' ({exc})' if str(exc) else ''}; UML stopped",
-                  file=sys.stderr, flush=True)
-            _end_group(proc)
-            return 128 + exc.signum if isinstance(exc, _Signalled) else EXIT_INTERRUPTED
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-        _end_group(proc)            # (helpers of a UML that ended by itself)
+        stopped = _wait(proc, timeout_s)
+        if stopped is not None:
+            return stopped
         try:
             rc = json.loads((rundir / "rc").read_text())
         except (OSError, ValueError):
@@ -308,190 +280,52 @@ def run(command: list[str], timeout_s: float = DEFAULT_TIMEOUT_S, mem: str = DEF
         shutil.rmtree(rundir, ignore_errors=True)
 
 
-# -- guest side (PID 1 inside UML) ------------------------------------------------------------
-
-MOUNTS = (("proc", "/proc", "proc", ""), ("sysfs", "/sys", "sysfs", ""),
-          ("devtmpfs", "/dev", "devtmpfs", ""), ("devpts", "/dev/pts", "devpts", ""),
-          ("tmpfs", "/dev/shm", "tmpfs", "mode=1777"), ("tmpfs", "/run", "tmpfs", "mode=755"))
-
-
-def _libc():
-    return ctypes.CDLL(None, use_errno=True)
-
-
-def _mount(src: str, target: str, fstype: str, opts: str) -> None:
-    libc = _libc()
-    os.makedirs(target, exist_ok=True)      # (/dev/pts, /dev/shm: on the fresh devtmpfs)
-    if libc.mount(src.encode(), target.encode(), fstype.encode(), 0,
-                  opts.encode() if opts else None) != 0:
-        err = ctypes.get_errno()
-        if err != 16:                       # EBUSY: devtmpfs may be mounted already
-            raise OSError(err, f"mount {fstype} on {target}: {os.strerror(err)}")
+def _guest_files(rundir: Path, command: list[str], modules: list[Path], interactive: bool,
+                 candump: Optional[str]) -> Path:
+    """The guest's specification (mode 0600: the command, this process's environment and
+    directory) and its init, which runs ``hil.transport.vcan_guest`` as PID 1."""
+    spec = {"argv": command, "cwd": os.getcwd(), "env": dict(os.environ),
+            "modules": [str(p) for p in modules], "interactive": interactive,
+            "tty": [os.isatty(1), os.isatty(2)], "candump": candump,
+            "rc": str(rundir / "rc")}
+    spec_path = rundir / "spec.json"
+    fd = os.open(spec_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump(spec, f)
+    init = rundir / "init"
+    init.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m "
+                    f"hil.transport.vcan_guest {shlex.quote(str(spec_path))}\n")
+    init.chmod(0o700)
+    return init
 
 
-def _insmod(path: str) -> None:
-    libc = _libc()
-    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+def _wait(proc: subprocess.Popen, timeout_s: float) -> Optional[int]:
+    """Until UML ends by itself (None), or the timeout, Ctrl-C, SIGTERM or SIGHUP ends it (the
+    exit status to return); either way its whole process group is ended."""
+    deadline = time.monotonic() + timeout_s
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
-        if libc.syscall(313, fd, b"", 0) != 0:        # finit_module (x86_64)
-            err = ctypes.get_errno()
-            if err != 17:                              # EEXIST: built in or loaded
-                raise OSError(err, f"insmod {path}: {os.strerror(err)}")
+        while proc.poll() is None:
+            if time.monotonic() > deadline:
+                print(f"vcan: timeout: {timeout_s:g} s passed; UML stopped",
+                      file=sys.stderr, flush=True)
+                _end_group(proc)
+                return EXIT_TIMEOUT
+            time.sleep(0.1)
+    except KeyboardInterrupt as exc:
+        print(f"vcan: interrupted{f' ({exc})' if str(exc) else ''}; UML stopped",
+              file=sys.stderr, flush=True)
+        _end_group(proc)
+        return 128 + exc.signum if isinstance(exc, _Signalled) else EXIT_INTERRUPTED
     finally:
-        os.close(fd)
-
-
-def _ip(*args: str) -> None:
-    ip = shutil.which("ip") or "/sbin/ip"
-    res = subprocess.run([ip, *args], capture_output=True, text=True)
-    if res.returncode != 0:
-        raise OSError(f"ip {' '.join(args)}: {res.stderr.strip()}")
-
-
-def _raw_output(fd: int) -> None:
-    """No output processing on a console tty (a '\\n' stays one byte, as on a pipe)."""
-    import termios
-
-    attrs = termios.tcgetattr(fd)
-    attrs[1] &= ~termios.OPOST
-    termios.tcsetattr(fd, termios.TCSANOW, attrs)
-
-
-def _can_receivers(channel: str = CHANNEL) -> int:
-    try:
-        return sum(1 for ln in Path("/proc/net/can/rcvlist_all").read_text().splitlines()
-                   if ln.split()[:1] == [channel])
-    except OSError:
-        return 0
-
-
-def start_candump(path, env: Optional[dict] = None,
-                  channel: str = CHANNEL) -> subprocess.Popen:
-    """``candump -L CHANNEL > path`` (can-utils), returned once its socket is on the
-    channel's receive list (/proc/net/can/rcvlist_all), so no frame sent after this returns
-    is missed. Stop it with :func:`stop_candump`."""
-    before = _can_receivers(channel)
-    with open(path, "wb") as f:
-        rec = subprocess.Popen(["candump", "-L", channel], stdin=subprocess.DEVNULL, stdout=f,
-                               stderr=subprocess.DEVNULL, env=env)
-    deadline = time.monotonic() + 10
-    while _can_receivers(channel) <= before:
-        if rec.poll() is not None or time.monotonic() > deadline:
-            stop_candump(rec)
-            raise OSError(f"candump did not start listening on {channel}")
-        time.sleep(0.01)
-    return rec
-
-
-def stop_candump(rec: subprocess.Popen) -> bool:
-    """SIGINT (candump flushes its output and exits), SIGKILL after 10 s; False if killed."""
-    if rec.poll() is not None:
-        return True
-    rec.send_signal(signal.SIGINT)
-    try:
-        rec.wait(10)
-        return True
-    except subprocess.TimeoutExpired:
-        rec.kill()
-        rec.wait(5)
-        return False
-
-
-def _relay(proc: subprocess.Popen, pipes: dict) -> None:
-    """Copy the command's piped stdout/stderr to the consoles until both close (or the
-    command has ended and its pipes stay quiet for a moment: a background child holds them)."""
-    import select
-
-    pipes = {r: w for r, w in pipes.items() if r is not None}
-    quiet_since = None
-    while pipes:
-        ready = select.select(list(pipes), [], [], 0.2)[0]
-        for r in ready:
-            chunk = os.read(r.fileno(), 65536)
-            if chunk:
-                os.write(pipes[r], chunk)
-            else:
-                del pipes[r]
-        if ready:
-            quiet_since = None
-        elif proc.poll() is not None:
-            quiet_since = quiet_since or time.monotonic()
-            if time.monotonic() - quiet_since > 1.0:
-                break
-
-
-def _power_off() -> None:
-    os.sync()
-    _libc().reboot(0x4321FEDC)             # LINUX_REBOOT_CMD_POWER_OFF
-    os._exit(0)
-
-
-def guest(spec_path: str) -> None:
-    """PID 1 in UML: set up the machine and vcan0, run the command, write rc, power off."""
-    spec = json.loads(Path(spec_path).read_text())
-    result: dict = {"code": EXIT_LOST}
-    try:
-        for mount in MOUNTS:
-            _mount(*mount)
-        for ko in spec["modules"]:
-            _insmod(ko)
-        _ip("link", "set", "lo", "up")
-        _ip("link", "add", "dev", CHANNEL, "type", "vcan")
-        _ip("link", "set", "up", CHANNEL)
-        tty_out = os.open("/dev/tty1", os.O_RDWR | os.O_NOCTTY)
-        tty_err = os.open("/dev/tty2", os.O_WRONLY | os.O_NOCTTY)
-        _raw_output(tty_err)
-        interactive = spec["interactive"]
-        if not interactive:
-            _raw_output(tty_out)
-        env = dict(spec["env"], **{GUEST_MARK: "1"})
-        env.pop("LD_PRELOAD", None)
-        try:
-            os.chdir(spec["cwd"])
-        except OSError:
-            os.chdir("/")
-
-        def child_setup():
-            os.setsid()
-            if interactive:
-                import fcntl
-                import termios
-
-                fcntl.ioctl(0, termios.TIOCSCTTY, 0)
-
-        recorder = start_candump(spec["candump"], env) if spec["candump"] else None
-        stdin = tty_out if interactive else subprocess.DEVNULL
-        out_tty, err_tty = (True, True) if interactive else spec["tty"]
-        try:
-            proc = subprocess.Popen(spec["argv"], stdin=stdin,
-                                    stdout=tty_out if out_tty else subprocess.PIPE,
-                                    stderr=(tty_out if interactive else tty_err) if err_tty
-                                    else subprocess.PIPE,       # (a shell: one terminal)
-                                    env=env, preexec_fn=child_setup)
-            _relay(proc, {proc.stdout: tty_out, proc.stderr: tty_err})
-            result = {"code": proc.wait()}
-            if result["code"] < 0:
-                result["code"] = 128 - result["code"]
-        except OSError as exc:
-            result = {"code": 127 if isinstance(exc, FileNotFoundError) else 126,
-                      "error": f"cannot run {spec['argv'][0]!r}: {exc.strerror or exc}"}
-        if recorder is not None and not stop_candump(recorder):
-            result.setdefault("error", "candump did not stop on SIGINT; killed")
-    except Exception as exc:  # noqa: BLE001 - told to the host, then power off
-        result = {"code": EXIT_LOST, "error": f"setting up the UML guest failed: {exc}"}
-    finally:
-        try:
-            tmp = spec["rc"] + ".tmp"
-            Path(tmp).write_text(json.dumps(result))
-            os.replace(tmp, spec["rc"])
-        finally:
-            _power_off()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    _end_group(proc)            # (helpers of a UML that ended by itself)
+    return None
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["--guest"] and len(argv) == 2 and os.getpid() == 1:
-        guest(argv[1])
     parser = argparse.ArgumentParser(
         prog="python -m hil vcan", description=__doc__.split("\n\n")[0],
         epilog="e.g. python -m hil vcan -- candump -L vcan0   |   python -m hil vcan (a shell)")

@@ -24,7 +24,6 @@ process (``--in-process``), tick for tick.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import sys
@@ -295,18 +294,16 @@ def run_over_bus(windows: list[Window], out: Path, seed: int = 1,
     """The campaign as ``hil run --pace lockstep`` with the injector in the plant and app
     processes (``--inject``); a node that dies or prints a traceback is a crash."""
     from hil.bench import supervisor
+    from hil.bench.spec import RunSpec
     from hil.config import default_vehicle
 
     dt = default_vehicle().sim.plant_dt_s
     n = campaign_ticks(windows)
     plan = out / "plan.json"
     plan.write_text(json.dumps({"windows": [asdict(w) for w in windows]}, indent=1) + "\n")
-    args = argparse.Namespace(
-        route=str(_route_file(out, n, dt)), mode=CAMPAIGN_MODE, controller=None, seed=seed,
-        gains=None, design=None, duration=n * dt, out=str(out), pace="lockstep", json=False,
-        vehicle=None,
-        driver=None, script=None, fixed_point=False, interface=interface, channel=channel,
-        inject=str(plan), key_file=None, outside_frames={})
+    args = RunSpec(route=str(_route_file(out, n, dt)), mode=CAMPAIGN_MODE, seed=seed,
+                   duration=n * dt, out=str(out), pace="lockstep", interface=interface,
+                   channel=channel, inject=str(plan))
     marks: dict = {}
     reads: dict = {}
     stop = threading.Event()

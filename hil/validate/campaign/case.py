@@ -1,0 +1,205 @@
+"""One case: its identity, the ``hil sim`` command that reproduces it, the software that
+ran it, and its run and judgement (on a Dask worker)."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import socket
+import time
+from pathlib import Path
+
+from hil.config import PACKAGE_DIR
+from hil.validate.acceptance import GRADE_MODE, RELATIVE_KEY, violations
+from hil.validate.campaign.spec import case_id, route_of, vehicle_config
+
+MIXED = "mixed"            # a segment driven in more than one mode (case.driven_mode)
+DRIVEN_SHARE = 0.95        # ... for less than this share of its window in its main mode
+
+
+def command(case: dict, db_path: str = "DB") -> str:
+    """The hil sim command that reproduces a case (vehicle variants and noise factors have no
+    command-line form: ``hil campaign-case DB CASE_ID`` runs the case the database holds)."""
+    parts = ["python -m hil sim", f"--route {case['route']['name']}",
+             f"--mode {case['mode']}", f"--seed {case['seed']}"]
+    v = case["vehicle"]
+    shipped = PACKAGE_DIR / "vehicles" / f"{v['name']}.toml"
+    if v["toml"]:
+        if not (shipped.is_file() and shipped.read_text() == v["toml"]):
+            return f"python -m hil campaign-case {db_path} {case_id(case)}"
+        parts.append(f"--vehicle hil/vehicles/{v['name']}.toml")
+    if "toml" in case["route"]:               # a route file: its text is in the case
+        return f"python -m hil campaign-case {db_path} {case_id(case)}"
+    if case["fixed_point"]:
+        parts.append("--fixed-point")
+    if case["duration_s"] is not None:
+        parts.append(f"--duration {case['duration_s']:g}")
+    if v["factors"] or v.get("nonlinear") or case["noise"] != 1.0:
+        return f"python -m hil campaign-case {db_path} {case_id(case)}"
+    return " ".join(parts + ["--key-file KEY"])
+
+
+# what defines the program a case runs, beside its inputs: the packages' sources and data
+SOURCE_PACKAGES = ("firmware", "calib", "hil")
+SOURCE_SUFFIXES = (".py", ".toml", ".json")
+
+
+@functools.lru_cache(maxsize=1)
+def source_sha256() -> str:
+    """SHA-256 over the source and data files of the firmware, calib and hil packages and the
+    DBC, each by its path in the project: two processes with the same digest run the same
+    program (the ``software_version`` of a case says which)."""
+    import importlib
+
+    from hil.transport.codec import DBC_PATH
+
+    files = []
+    for name in SOURCE_PACKAGES:
+        base = Path(importlib.import_module(name).__file__).resolve().parent
+        files += [(f"{name}/{f.relative_to(base).as_posix()}", f) for f in base.rglob("*")
+                  if f.suffix in SOURCE_SUFFIXES and "__pycache__" not in f.parts
+                  and f.is_file()]
+    files.append(("dbc/" + DBC_PATH.name, DBC_PATH))
+    h = hashlib.sha256()
+    for rel, f in sorted(files):
+        data = f.read_bytes()
+        h.update(f"{rel}\0{len(data)}\0".encode())
+        h.update(data)
+    return h.hexdigest()
+
+
+def software_version() -> str:
+    """The ECU's software version (DID 0xF195) and the digest of the code that ran it:
+    ``suspension-0.1.0+src.1a2b3c4d5e6f``."""
+    from calib.ecu_params import SOFTWARE_VERSION
+
+    return f"{SOFTWARE_VERSION}+src.{source_sha256()[:12]}"
+
+
+# the SecOC key of every case: fixed (public, like the golden runs'), so a case's bytes are
+# the same everywhere; the trace hash does not depend on it
+CASE_KEY = bytes(range(16))
+
+
+def run_case(case: dict, acceptance: bool | str = True) -> dict:
+    """Run one case (on a worker): the row of ``cases`` and the rows of ``segments``. A case
+    that raises is a result too (verdict ``error``, the exception in ``failed``): one bad
+    case does not stop a campaign."""
+    t0 = time.perf_counter()
+    try:
+        return _run_case(case, acceptance, t0)
+    except Exception as exc:  # noqa: BLE001 - recorded with the case
+        return {"case_id": case_id(case), "case": case, "calibration_sha256": "",
+                "software_version": _version_or_blank(), "trace_sha256": "",
+                "verdict": "error",
+                "failed": [f"{type(exc).__name__}: {exc}"],
+                "wall_s": time.perf_counter() - t0,
+                "worker": f"{socket.gethostname()}:{os.getpid()}", "segments": []}
+
+
+def _version_or_blank() -> str:
+    try:
+        return software_version()
+    except Exception:  # noqa: BLE001 - an error row without a version rather than none
+        return ""
+
+
+def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
+    from hil.nodes import sil
+
+    cfg = vehicle_config(case["vehicle"], case["noise"])
+    route = route_of(case["route"])
+    params = sil.ecu_params(cfg, case["mode"])
+    report, _ = sil.run(cfg, route, case["mode"], case["seed"], params=params,
+                        duration_s=case["duration_s"], fixed_point=case["fixed_point"],
+                        key=CASE_KEY)
+    failed = [c["name"] for c in report["checks"] if not c["ok"]]
+    segments = []
+    for i, (seg, rs) in enumerate(zip(report["segments"], route.segments)):
+        row = judge_segment(cfg, route, rs, seg, case["mode"], acceptance)
+        row["idx"] = i
+        if not row["ok"]:
+            failed.append(f"segment {i + 1} ({seg['grade']}@{seg['speed_mps']:g}): "
+                          f"{row['why']}")
+        segments.append(row)
+    return {"case_id": case_id(case), "case": case,
+            "calibration_sha256": bytes(params.calibration_sha256).hex(),
+            "software_version": software_version(),
+            "trace_sha256": report["trace_sha256"],
+            "verdict": "fail" if failed else "pass", "failed": failed,
+            "wall_s": time.perf_counter() - t0,
+            "worker": f"{socket.gethostname()}:{os.getpid()}", "segments": segments}
+
+
+def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict:
+    """A segment against the acceptance of the mode it was driven in, and its gap to the
+    vehicle's own limit for that mode (``calib.linear.physical_limits``: no controller can go
+    below it). The gap is judged on the mean over the seeds, in ``report``: one segment's
+    ratio scatters around the mean by more than the 0.03 a design is held to."""
+    driven = driven_mode(seg, mode)
+    row = {"grade": seg["grade"], "speed_mps": seg["speed_mps"], "mode": driven,
+           "scored": bool(seg.get("scored", True)), "ratio": seg.get("ratio", {}),
+           "limit_name": None, "limit_value": None, "gap": None, "ok": True, "why": "",
+           "metrics": seg}
+    if not row["scored"] or driven not in ("comfort", "safety", "comprehensive"):
+        return row
+    limits = _limits(cfg.vehicle, rs, route)
+    r = seg["ratio"]
+    name, value = {"comfort": ("comfort_ba", r["ba"]), "safety": ("safety_dtd", r["dtd"]),
+                   "comprehensive": ("eq43_sum", sum(r.values()))}[driven]
+    limit = limits[{"comfort": "comfort", "safety": "safety",
+                    "comprehensive": "eq43"}[driven]]
+    row.update(limit_name=name, limit_value=limit, gap=value - limit)
+    why = []
+    if acceptance:
+        raised = None
+        if acceptance == "relative" and driven in RELATIVE_KEY:
+            # the same margin above this vehicle's limit as above the default car's
+            from hil.config import default_vehicle
+
+            raised = {RELATIVE_KEY[driven]: limit - _limits(default_vehicle().vehicle, rs,
+                                                            route)[driven]}
+        why = violations(driven, r, limit, raised)
+    row["ok"], row["why"] = not why, "; ".join(why)
+    return row
+
+
+def driven_mode(seg: dict, mode: str) -> str:
+    """The mode a segment was driven in: the active mode of at least ``DRIVEN_SHARE`` of its
+    scored window, else ``MIXED``: the road-holding override took over for a longer part of
+    it (safety first, ``road_holding_share``), or the driver's mode changed inside it. A
+    mixed window's ratios belong to no mode, so no mode's acceptance or limit judges them;
+    the report counts them. (A few per cent in another mode are judged with the window's
+    mode: the override's safety mode has a higher BA ratio and Eq. (43) sum than comfort and
+    comprehensive, so that judgement errs on the strict side.)"""
+    modes = seg.get("modes")
+    if not modes:                     # (not scored)
+        return GRADE_MODE.get(seg["grade"], mode) if mode == "auto" else mode
+    top, share = max(modes.items(), key=lambda kv: kv[1])
+    return top if share >= DRIVEN_SHARE else MIXED
+
+
+def _limits(vehicle, rs, route) -> dict:
+    """The limits (``calib.linear.physical_limits``) of a vehicle on a route segment's road."""
+    return _limit_values(vehicle, rs.gq_m3, rs.speed_mps, route.road.convention,
+                         route.road.cutoff_n_per_m)
+
+
+@functools.lru_cache(maxsize=64)
+def _limit_values(vehicle, gq: float, speed: float, convention: str, cutoff: float) -> dict:
+    """The limits' values, kept in the design cache (``calib.cache``: keyed by the vehicle,
+    the road and the design code; shared by a campaign's workers, which would otherwise each
+    solve them for every vehicle: a second or two of Riccati solves per segment, more than a
+    case's drive)."""
+    import pickle
+
+    from calib import cache
+    from calib.linear import physical_limits
+    from calib.model import linear_model
+
+    def compute() -> dict:
+        res = physical_limits(linear_model(vehicle, gq, speed, convention, cutoff))
+        return {name: r.value for name, r in res.items()}
+    parts = (pickle.dumps(vehicle, protocol=5), repr((gq, speed, convention, cutoff)).encode())
+    return cache.cached("limits", parts, compute)

@@ -1,0 +1,175 @@
+"""A campaign database's summary: pass rate, failures per criterion, the mean ratio per
+vehicle, mode and grade against its limit, the worst cases; its figure and text."""
+
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+from pathlib import Path
+
+from calib.errors import ConfigError
+from hil.validate.campaign.case import MIXED
+from hil.validate.campaign.spec import label
+
+def report(db_path: Path) -> dict:
+    """The summary of a campaign database: cases and pass rate; per criterion (each check
+    and acceptance clause) its failures; the worst cases by their gap to the vehicle's own
+    limit, with the command that reproduces each; per vehicle, mode and grade the mean ratio
+    over the seeds with its 95 % confidence interval next to the limit, ``ok`` when the mean
+    is at most the campaign's ``max_gap`` above it; the segments driven in more than one
+    mode (``MIXED``), with their share under the road-holding override. The verdict: every
+    case passes and every mean is ok."""
+    if not Path(db_path).is_file():
+        raise ConfigError(f"{db_path}: no such campaign database")
+    db = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
+    try:
+        cases = db.execute("SELECT case_id, vehicle, factors, mode, verdict, failed, command, "
+                           "trace_sha256, wall_s FROM cases ORDER BY case_id").fetchall()
+        versions = dict(db.execute("SELECT software_version, count(*) FROM cases GROUP BY "
+                                   "software_version ORDER BY software_version"))
+        segs = db.execute("SELECT s.case_id, c.vehicle, c.factors, s.mode, s.grade, "
+                          "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
+                          "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
+                          "NULL").fetchall()
+        mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, "
+                           "json_extract(s.metrics, '$.road_holding_share') FROM segments s "
+                           "JOIN cases c USING (case_id) WHERE s.mode = ?", (MIXED,)).fetchall()
+        meta = dict(db.execute("SELECT key, value FROM meta"))
+    finally:
+        db.close()
+    name = meta.get("campaign", "?")
+    max_gap = json.loads(meta.get("max_gap", "null"))
+    criteria: dict[str, int] = {}
+    for c in cases:
+        for f in json.loads(c[5]):
+            key = f.split(":")[1].split()[0] if f.startswith("segment") else f
+            criteria[key] = criteria.get(key, 0) + 1
+    groups: dict[tuple, list] = {}
+    for s in segs:
+        vehicle = label({"name": s[1], "factors": json.loads(s[2])})
+        groups.setdefault((vehicle, s[3], s[4], s[6]), []).append((s[7] + s[8], s[7]))
+    rows = []
+    for (vehicle, mode, grade, limit_name), vals in sorted(groups.items()):
+        v = [x for x, _ in vals]
+        mean = sum(v) / len(v)
+        sd = math.sqrt(sum((x - mean) ** 2 for x in v) / (len(v) - 1)) if len(v) > 1 else 0.0
+        half = _t95(len(v) - 1) * sd / math.sqrt(len(v)) if len(v) > 1 else float("nan")
+        limit = sum(lim for _, lim in vals) / len(vals)
+        rows.append({"vehicle": vehicle, "mode": mode, "grade": grade, "ratio": limit_name,
+                     "n": len(v), "mean": mean, "ci95": [mean - half, mean + half],
+                     "limit": limit, "gap": mean - limit,
+                     "ok": max_gap is None or mean - limit <= max_gap})
+    over = sum(not r["ok"] for r in rows)
+    if over:
+        criteria[f"max_gap (mean ratio over its limit + {max_gap:g}; groups)"] = over
+    if len(versions) > 1:
+        criteria["one software version (cases of different code)"] = len(cases)
+    held: dict[tuple, list] = {}
+    for m in mixed:
+        held.setdefault((label({"name": m[0], "factors": json.loads(m[1])}),
+                         f"{m[2]}@{m[3]:g}"), []).append(m[4] or 0.0)
+    worst = sorted(segs, key=lambda s: -s[8])[:10]
+    passed = sum(c[4] == "pass" for c in cases)
+    return {"campaign": name, "cases": len(cases), "passed": passed, "max_gap": max_gap,
+            "pass_rate": passed / len(cases) if cases else float("nan"),
+            "wall_s": sum(c[8] for c in cases),
+            "software_versions": versions,
+            "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
+            "ratios": rows,
+            "mixed": [{"vehicle": v, "segment": seg, "n": len(shares),
+                       "road_holding_share": sum(shares) / len(shares)}
+                      for (v, seg), shares in sorted(held.items())],
+            "worst": [{"case_id": s[0], "vehicle": s[1], "factors": json.loads(s[2]),
+                       "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
+                       "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
+                       "command": s[10]} for s in worst],
+            "verdict": "pass" if cases and passed == len(cases) and not over
+            and len(versions) == 1 else "fail"}
+
+
+def _t95(dof: int) -> float:
+    """Student's t, two-sided 95 %."""
+    from scipy.stats import t
+
+    return float(t.ppf(0.975, dof))
+
+
+def report_figure(rep: dict, path: Path) -> Path:
+    """Each group's mean ratio with its 95 % interval, against its limit."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = rep["ratios"]
+    fig, ax = plt.subplots(figsize=(9, 0.35 * len(rows) + 1.6))
+    y = list(range(len(rows)))
+    for i, r in enumerate(rows):
+        lo, hi = r["ci95"]
+        err = None if math.isnan(lo) else [[r["mean"] - lo], [hi - r["mean"]]]
+        ax.errorbar(r["mean"], i, xerr=err, fmt="o", color="C0", capsize=3,
+                    label="mean ratio, 95 % CI" if i == 0 else None)
+        ax.plot([r["limit"]] * 2, [i - 0.35, i + 0.35], color="C3", lw=2,
+                label="the vehicle's limit" if i == 0 else None)
+    ax.set_yticks(y, [f"{r['vehicle']} | {r['mode']} {r['grade']} ({r['ratio']})"
+                      for r in rows], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("ratio to the passive twin (lower is better; the limit is the best any "
+                  "controller can do)")
+    ax.grid(alpha=0.3, axis="x")
+    if rows:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.set_title(f"campaign {rep['campaign']}: {rep['passed']}/{rep['cases']} cases pass",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, metadata={"Software": None})
+    plt.close(fig)
+    return path
+
+
+def render(rep: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    con.print(f"campaign {rep['campaign']}: {rep['passed']}/{rep['cases']} cases pass "
+              f"({100 * rep['pass_rate']:.1f} %), {rep['wall_s']:.0f} s of worker time")
+    con.print("software: " + "; ".join(f"{v or '?'} ({n} cases)"
+                                       for v, n in rep["software_versions"].items()))
+    if rep["failures_by_criterion"]:
+        t = Table(title="failures by criterion")
+        t.add_column("criterion")
+        t.add_column("cases", justify="right")
+        for k, v in rep["failures_by_criterion"].items():
+            t.add_row(k, str(v))
+        con.print(t)
+    t = Table(title="ratios per vehicle, mode and grade (mean, 95 % CI) against the limit")
+    for col in ("vehicle", "mode", "grade", "ratio", "n", "mean", "95 % CI", "limit", "gap",
+                "ok"):
+        t.add_column(col, justify="right" if col not in ("vehicle", "mode", "ratio") else
+                     "left")
+    for r in rep["ratios"]:
+        lo, hi = r["ci95"]
+        t.add_row(r["vehicle"], r["mode"], r["grade"], r["ratio"], str(r["n"]),
+                  f"{r['mean']:.3f}", "-" if math.isnan(lo) else f"{lo:.3f}–{hi:.3f}",
+                  f"{r['limit']:.3f}", f"{r['gap']:+.3f}", "yes" if r["ok"] else "NO")
+    con.print(t)
+    if rep["mixed"]:
+        t = Table(title="segments driven in more than one mode (judged by no mode's "
+                        "acceptance or limit)")
+        for col in ("vehicle", "segment", "segments", "under the road-holding override"):
+            t.add_column(col)
+        for m in rep["mixed"]:
+            t.add_row(m["vehicle"], m["segment"], str(m["n"]),
+                      f"{100 * m['road_holding_share']:.0f} % of their time")
+        con.print(t)
+    t = Table(title="worst cases (largest gap to the limit)")
+    for col in ("vehicle", "mode", "segment", "value", "limit", "gap", "reproduce"):
+        t.add_column(col)
+    for w in rep["worst"]:
+        t.add_row(label({"name": w["vehicle"], "factors": w["factors"]}),
+                  w["mode"], w["segment"], f"{w['value']:.3f}", f"{w['limit']:.3f}",
+                  f"{w['gap']:+.3f}", w["command"])
+    con.print(t)
+    con.print(f"verdict: {rep['verdict'].upper()}")
