@@ -11,7 +11,6 @@ import pickle
 import numpy as np
 
 from calib import cache
-from firmware.actuator import CURRENT_MARGIN
 from firmware.kernels.bppid import FORCE_REF_N
 from firmware.fixedpoint import best_frac, to_fixed
 from firmware.fx.tables import (ADC_FRAC, F_ACC, F_CUR, F_FORCE, F_JERK, F_NN, F_POS, F_TANH, F_VEL,
@@ -101,7 +100,7 @@ def _build_tables(p: EcuParams) -> FxTables:
         kf_eta=fx(kf * eta, F_CUR, F_FORCE), kf_over_eta=fx(kf / eta, F_CUR, F_FORCE),
         inv_eta_kf=fx(1.0 / (eta * kf), F_FORCE, F_CUR), eta_over_kf=fx(eta / kf, F_FORCE, F_CUR),
         friction=fx(pl.friction, F_VEL, F_FORCE),
-        current_limit=fx_at(CURRENT_MARGIN * pl.current_limit, F_CUR),
+        current_limit=fx_at(p.actuator.current_limit, F_CUR),
         inv_mass=fx(1.0 / pl.ms + 1.0 / pl.mt, F_FORCE, F_ACC),
         cur_a=fx(act.current_a, F_CUR, F_CUR), inv_cur_b=fx(1.0 / act.current_b, F_CUR, F_VOLT),
         cur_ki=fx(act.ki, F_CUR, F_VOLT), integ_limit=fx_at(act.integ_limit, F_VOLT),

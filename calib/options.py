@@ -72,10 +72,10 @@ class DesignOptions:
     skyhook_c: float = 3000.0             # (these two as regen_c: Table 3's, scaled per car)
     pid_ki: float = 3500.0
     pid_leak_s: float = 1.5               # time constant of the incremental PID's leak
-    # comfort (BP-PID around a state feedback, calib.ecu_params.comfort_gains): the exact
+    # comfort (BP-PID around a state feedback, calib.control_design.comfort_gains): the exact
     # SWS ratio of the law as the ECU runs it (the PID's leak included,
-    # calib.ecu_params.comfort_as_run) and its DTD ratio at most these x passive (the LQR
-    # design's own DTD ratio, then the as-run one in calib.ecu_params.comfort_polish)
+    # calib.control_design.comfort_as_run) and its DTD ratio at most these x passive (the LQR
+    # design's own DTD ratio, then the as-run one in calib.control_design.comfort_polish)
     # (SWS also at most exp(-z sigma) over ratio_window_s, as for safety: the seeds' scatter),
     # the suspension's static stiffness at least comfort_min_stiffness x the spring's (half:
     # the whole spring cost the default car 0.016 of BA ratio); the network's gain ranges:
@@ -98,7 +98,7 @@ class DesignOptions:
     bp_alpha: float = 0.05
     bp_seed: int = 7
     # the energy-feedback law's damping (N s/m) for a body with Table 3's critical damping
-    # 2 sqrt(k_s m_s); another car's scales with its own (calib.ecu_params.damping_scale)
+    # 2 sqrt(k_s m_s); another car's scales with its own (calib.control_design.damping_scale)
     regen_c: float = 550.0
     regen_skyhook_c: float = 1200.0
     regen_min_voltage_ratio: float = 0.5
@@ -106,6 +106,52 @@ class DesignOptions:
     # current loop (firmware.actuator)
     current_ki_ratio: float = 0.2         # integral gain as a fraction of the deadbeat gain
     current_integ_limit_ratio: float = 0.2   # integral clamp as a fraction of the bus voltage
+    current_margin: float = 0.95          # the current loop's limit: this x the winding's limit
+    # AKF: the wheel is taken as airborne while the measured tyre force is within this many
+    # sigma of zero
+    akf_lift_sigmas: float = 5.0
+    # the fixed damping gains (skyhook_c, pid_ki, regen_c) are set for a body with this car's
+    # critical damping 2 sqrt(k_s m_s) (Table 3's); another car's scale with its own
+    damping_reference: tuple = (320.0, 20000.0)   # sprung mass kg, spring N/m
+    # the safety design's BA bound is a fixed point: at most this many designs, this close
+    safety_bound_steps: int = 6
+    safety_bound_tol: float = 5e-4
+    # comfort: the network's K_i range (N s/m) where the design wants no skyhook; the range
+    # the design's SWS bound is searched in; the SLSQP iterations of the law's polish
+    comfort_ki_floor: float = 1.0
+    comfort_bound_range: tuple = (0.5, 1.2)
+    comfort_polish_iter: int = 60
+    # model-based fault detection (firmware.diag.fdi, docs/diagnostics.md): the false-alarm
+    # probability per test window; the innovation tests' EWMA window (ticks), the actuator
+    # test's; a failed actuator test holds the bridge open this long, then retries; BA or WA
+    # repeating a count less likely than fdi_act_suspect gives no actuator verdict; the
+    # innovation tests wait fdi_hold_windows windows after the model held, and give no
+    # verdict before the estimator has run fdi_settle_s; an open winding: |i| within
+    # fdi_open_sigmas of zero throughout; one tick's normalised square enters a test at most
+    # as fdi_clip_sigmas squared; a channel repeating counts more often than flatline_max_p
+    # has no flatline test
+    fdi_false_alarm: float = 1e-9
+    fdi_nis_window: int = 100
+    fdi_act_window: int = 5
+    fdi_act_retry_s: float = 0.1
+    fdi_act_suspect: float = 0.05
+    fdi_hold_windows: int = 3
+    fdi_settle_s: float = 1.0
+    fdi_open_sigmas: float = 4.0
+    fdi_clip_sigmas: float = 5.0
+    flatline_max_p: float = 0.9
+    fdi_actuator_verdicts: bool = True
+    # which innovation tests give verdicts, [BA, SWS, WA]: the WA innovation is dominated by
+    # the unmeasured road, whose roughness steps at a segment boundary (B to D: 16x G_q)
+    # before the grade estimate follows, so WA's gives none (a WA fault reaches the BA and
+    # SWS innovations; a stuck WA its flatline test)
+    fdi_nis_verdicts: tuple = (True, True, False)
+    # the supply's operating range as a fraction of the nominal bus voltage: for 48 V,
+    # ISO 21780's range of unlimited operation begins at 36 V and its limited range ends at
+    # 54 V. Below, the actuator cannot be relied on for its force; above, the bridge must be
+    # protected: either is a safety-relevant fault (the bridge opens)
+    supply_low_ratio: float = 0.75
+    supply_high_ratio: float = 1.125
 
 
 def load_options(path: str | Path, base: DesignOptions | None = None) -> DesignOptions:
@@ -134,6 +180,11 @@ def _checked(path: Path, key: str, value, default):
         if not isinstance(value, bool):
             raise ConfigError(f"{where} must be true or false, got {value!r}")
         return value
+    if isinstance(default, tuple) and all(isinstance(v, bool) for v in default):
+        if (not isinstance(value, list) or len(value) != len(default)
+                or not all(isinstance(v, bool) for v in value)):
+            raise ConfigError(f"{where} must be a list of {len(default)} booleans")
+        return tuple(value)
     if isinstance(default, tuple):
         if (not isinstance(value, list) or len(value) != len(default)
                 or not all(_is_number(v) and math.isfinite(v) and v > 0 for v in value)):

@@ -28,18 +28,17 @@ from firmware.util import clamp, pymax, pymin, round_half_away
 Q15_ONE = 32768
 DUTY_MIN_Q15 = -32768
 DUTY_MAX_Q15 = 32767
-CURRENT_MARGIN = 0.95
 
 ACTUATOR = np.dtype([("integ", "f8"), ("i_ref_prev", "f8"), ("voltage", "f8"),
                      ("i_prev", "f8"), ("observer_valid", "u1"), ("emf", "f8")])
 
 
 @njit
-def current_reference(pl, force: float, rel_vel: float, compensate: bool) -> float:
+def current_reference(pl, act, force: float, rel_vel: float, compensate: bool) -> float:
     demand = force + (pl.friction * rel_vel if compensate else 0.0)
     g = pl.efficiency if demand * rel_vel >= 0.0 else 1.0 / pl.efficiency
     i_ref = demand / (g * pl.force_constant)
-    lim = CURRENT_MARGIN * pl.current_limit
+    lim = act.current_limit
     return clamp(i_ref, -lim, lim)
 
 

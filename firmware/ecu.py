@@ -235,7 +235,7 @@ def _control(P, S, mode, fault, regen, ba, wa, i_meas, force_meas):
         actuator.reset(S.ctl.actuator)
         return 0, False, 0.0
     rel = x[0] - x[1]
-    i_ref = actuator.current_reference(pl, force, rel, not regen)
+    i_ref = actuator.current_reference(pl, P.actuator, force, rel, not regen)
     # relative acceleration over the tick: measured now, plus the change of force
     rel_acc = (ba - wa) + (force - force_meas) * (1.0 / pl.ms + 1.0 / pl.mt)
     duty = actuator.step(P.actuator, pl, S.ctl.actuator, i_ref, i_meas, rel, regen,

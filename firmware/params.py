@@ -174,6 +174,7 @@ class ActuatorParams:
     current_b: float             # (1 - a) / R
     ki: float                    # integral gain of the current loop (V per A per tick)
     integ_limit: float           # anti-windup clamp of the integral (V)
+    current_limit: float         # the loop's current limit (A): a margin x the winding's
 
 
 @dataclass(frozen=True)

@@ -315,9 +315,14 @@ def _sim(args) -> int:
                 if log else None)
     except ConfigError as exc:
         fail(str(exc))
+    except OSError as exc:          # bus.log on a full (or vanished) disk: one line, as hil run
+        fail(_cannot_write(args.out, exc), 1)
     finally:
         if log is not None:
-            log.close()
+            try:
+                log.close()
+            except OSError as exc:
+                fail(_cannot_write(args.out, exc), 1)
     if args.out:
         try:
             logs = [log.path, *convert(log.path, formats, start_us)]
@@ -325,7 +330,10 @@ def _sim(args) -> int:
             fail(f"sim: the bus log could not be converted: {type(exc).__name__}: {exc}", 1)
         report["bench"] = {"harness": "sil", "frames_logged": log.count,
                            "logs": [p.name for p in logs]}
-        write_outputs(Path(args.out), report, trace, cfg, route)
+        try:
+            write_outputs(Path(args.out), report, trace, cfg, route)
+        except OSError as exc:
+            fail(_cannot_write(args.out, exc), 1)
     if args.junit:
         verdict.write_junit(args.junit, f"hil sim {route.name} {args.mode}",
                             [verdict.Check(**c) for c in report["checks"]])
@@ -333,6 +341,11 @@ def _sim(args) -> int:
     if args.out and not args.json:
         print(f"report: {Path(args.out) / 'report.md'} (and report.json, bus.log, figures)")
     return verdict.exit_code(report)
+
+
+def _cannot_write(out: str, exc: OSError) -> str:
+    where = f" ({exc.filename})" if exc.filename else ""
+    return f"sim: --out {out}: cannot write{where}: {exc.strerror or exc}"
 
 
 def _run(args) -> int:

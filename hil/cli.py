@@ -264,3 +264,21 @@ def progress_bar(label: str, enabled: bool) -> Iterator[Optional[Callable[[int, 
         yield lambda done, total: bar.update(task, completed=done, total=total)
     finally:
         bar.stop()
+
+
+def write_atomic(path: Path | str, text: str | bytes) -> Path:
+    """``text`` into ``path`` whole or not at all: written to ``path.tmp``, then renamed over
+    ``path``; on any failure (a full disk) the temporary file is removed and the error
+    raised, so no ``*.tmp`` stays behind."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        if isinstance(text, bytes):
+            tmp.write_bytes(text)
+        else:
+            tmp.write_text(text)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from calib import cache, ecu_params
+from calib import cache
 from hil.validate import alarms
 from hil.sim.road import load_route
 
@@ -51,8 +51,17 @@ def test_a_rough_fast_drive_past_the_bump_stops_raises_no_alarm():
 def test_the_command_fails_when_the_tests_alarm(monkeypatch):
     """Sabotage: a false-alarm probability of 0.5 per window puts the innovation tests' level
     near the noise itself; the measurement must see it and the verdict fail."""
-    monkeypatch.setattr(ecu_params, "FDI_FALSE_ALARM", 0.5)
-    monkeypatch.setenv(cache.ENV_OFF, "1")     # (a design constant patched: not the cache's)
+    import dataclasses
+
+    from calib.options import DesignOptions
+
+    from hil.nodes import sil
+
+    def sabotaged(**changes):        # (the design a run takes by default)
+        return dataclasses.replace(DesignOptions(), fdi_false_alarm=0.5, **changes)
+
+    monkeypatch.setattr(sil, "DesignOptions", sabotaged)
+    monkeypatch.setenv(cache.ENV_OFF, "1")     # (nothing of it kept on disk)
     doc = alarms.summarise(alarms.measure(alarms.cases(["city"], ["table3.toml"], [20.0], [1],
                                                        duration_s=5.0), jobs=1))
     assert doc["detections"] > 0 and doc["verdict"] == "fail"

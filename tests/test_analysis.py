@@ -137,12 +137,13 @@ def test_cli_rejects_bad_arguments():
 
 @pytest.mark.parametrize("vehicle", ["default", "suv"])
 def test_the_comfort_design_follows_the_vehicle(vehicle):
-    """calib.ecu_params.comfort_law for each car: the SWS ratio of the law as the ECU runs it
+    """calib.control_design.comfort_law for each car: the SWS ratio of the law as the ECU runs it
     (with the PID's leak) and its DTD ratio within the design's bounds, the static stiffness
     rule, BA within 0.03 of that car's own limit, and a loop stable over the BP-PID's whole
     K_i range (build raises otherwise)."""
-    from calib.ecu_params import (_comfort_loop, build, comfort_as_run, comfort_law,
-                                  comfort_sws_top, window_bound)
+    from calib.control_design import _comfort_loop, comfort_as_run, comfort_law, comfort_sws_top
+    from calib.ecu_params import build
+    from calib.model import window_bound
     from calib.options import DesignOptions
 
     cfg = default_vehicle() if vehicle == "default" else SUV
@@ -170,8 +171,9 @@ def test_the_comfort_polish_beats_the_lqr_family_where_the_sws_bound_binds():
     below the LQR family, meets every bound, and is stable."""
     import dataclasses
 
-    from calib.ecu_params import (_comfort_loop, _comfort_poles, comfort_as_run, comfort_polish,
-                                  comfort_sws_top, comfort_total_gain, window_bound)
+    from calib.control_design import (_comfort_loop, _comfort_poles, comfort_as_run,
+                                      comfort_polish, comfort_sws_top, comfort_total_gain)
+    from calib.model import window_bound
     from calib.options import DesignOptions
 
     vp = SUV.vehicle
@@ -204,7 +206,7 @@ def test_the_comfort_law_as_run_is_the_design_without_the_leak():
     180 s, the SUV: 0.937 driven)."""
     import dataclasses
 
-    from calib.ecu_params import comfort_as_run, comfort_total_gain
+    from calib.control_design import comfort_as_run, comfort_total_gain
     from calib.options import DesignOptions
 
     opts = DesignOptions()
@@ -218,20 +220,20 @@ def test_the_comfort_law_as_run_is_the_design_without_the_leak():
 
 
 def test_a_process_designs_each_vehicle_once_and_nobody_changes_the_design(monkeypatch):
-    """calib.ecu_params keeps the feedback designs per process: a second build of the same
+    """calib.control_design keeps the feedback designs per process: a second build of the same
     vehicle and options gives equal gains without designing again, the kept arrays are
     read-only, and other options design anew. (The design cache on disk off: it would serve
     both builds, each a fresh copy; tests/test_cache.py has its own tests.)"""
     import dataclasses
 
-    from calib import cache, ecu_params
+    from calib import cache, control_design, ecu_params
     from calib.options import DesignOptions
 
     monkeypatch.setenv(cache.ENV_OFF, "1")
-    ecu_params._feedback_designs.cache_clear()
+    control_design._feedback_designs.cache_clear()
     first = ecu_params.build(SUV, DesignOptions())
     again = ecu_params.build(SUV, DesignOptions())
-    assert ecu_params._feedback_designs.cache_info().hits == 1
+    assert control_design._feedback_designs.cache_info().hits == 1
     for a, b in ((first.control.k_comfort, again.control.k_comfort),
                  (first.control.k_safety, again.control.k_safety)):
         assert np.array_equal(a, b)
@@ -288,13 +290,13 @@ def test_window_scatter_matches_many_simulated_drives():
 
 
 def test_the_safety_design_keeps_ba_within_its_window_scatter():
-    """calib.ecu_params.safety_gain per vehicle: BA at most exp(-z sigma) of a drive of
+    """calib.control_design.safety_gain per vehicle: BA at most exp(-z sigma) of a drive of
     ratio_window_s (within 0.0005) and at most safety_bound, SWS at most safety_bound; a
     body that scatters more gets the tighter bound; DTD within 0.035 of the car's limit."""
     import dataclasses
     import math
 
-    from calib.ecu_params import safety_gain
+    from calib.control_design import safety_gain
     from calib.model import window_scatter
     from calib.options import DesignOptions
 
@@ -324,11 +326,13 @@ def test_the_fixed_damping_gains_follow_the_body():
     car, 1.69 x on the SUV (k_s 35 kN/m, m_s 520 kg)."""
     import math
 
-    from calib.ecu_params import build, damping_scale
+    from calib.control_design import damping_scale
+    from calib.ecu_params import build
     from calib.options import DesignOptions
 
     opts = DesignOptions()
-    assert damping_scale(CFG.vehicle) == 1.0
+    assert opts.damping_reference == (320.0, 20000.0)         # (Table 3's body)
+    assert damping_scale(CFG.vehicle, opts) == 1.0
     default = build(CFG, opts).control
     assert (default.regen_c, default.regen_skyhook_c) == (opts.regen_c, opts.regen_skyhook_c)
     assert (default.skyhook_c, default.pid_ki) == (opts.skyhook_c, opts.pid_ki)

@@ -9,7 +9,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from calib.ecu_params import build, flatline_ticks
+from calib.ecu_params import build
+
+from calib.fdi_design import flatline_ticks
+from calib.options import DesignOptions
 from firmware import safety
 from firmware.diag import SESSION_EXTENDED, dtc, fdi, uds
 from firmware.diag.view import DiagView
@@ -171,10 +174,11 @@ def test_a_stuck_duty_that_outlives_the_retry_is_failed_again_within_its_window(
 def test_flatline_lengths_follow_the_noise_model():
     # BA: 0.02 m/s^2 noise on 60/4095 m/s^2 steps: a repeat has probability <= 0.207
     p = (60 / 4095) / (2 * 0.02 * math.sqrt(math.pi))
-    n = flatline_ticks(0.02, 60 / 4095)
-    assert p ** (n - 1) < 1e-9 <= p ** (n - 2)
-    assert flatline_ticks(0.001, 1.0) == 0          # noise far below one step: no test
-    assert P.fdi.flat_ticks == tuple(flatline_ticks(c.noise_std, c.lsb) for c in (
+    o = DesignOptions()
+    n = flatline_ticks(0.02, 60 / 4095, o.fdi_false_alarm, o.flatline_max_p)
+    assert o.fdi_false_alarm == 1e-9 and p ** (n - 1) < 1e-9 <= p ** (n - 2)
+    assert flatline_ticks(0.001, 1.0, 1e-9, 0.9) == 0      # noise far below one step: no test
+    assert P.fdi.flat_ticks == tuple(flatline_ticks(c.noise_std, c.lsb, 1e-9, 0.9) for c in (
         default_vehicle().sensors.body_accel, default_vehicle().sensors.wheel_accel,
         default_vehicle().sensors.susp_defl, default_vehicle().sensors.motor_current))
 

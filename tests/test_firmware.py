@@ -236,11 +236,12 @@ def test_duty_rounding_and_saturation():
 
 def test_current_reference_limits_and_efficiency():
     pl = P.plant
-    big = actuator.current_reference(PR["plant"], 1e6, 0.1, True)
-    assert big == pytest.approx(actuator.CURRENT_MARGIN * pl.current_limit)
+    big = actuator.current_reference(PR["plant"], PR["actuator"], 1e6, 0.1, True)
+    assert big == pytest.approx(P.actuator.current_limit)
+    assert P.actuator.current_limit == pytest.approx(0.95 * pl.current_limit)   # (the margin)
     # motoring needs more current than the ideal, generating less
-    drive = actuator.current_reference(PR["plant"], 300.0, 0.1, False)
-    brake = actuator.current_reference(PR["plant"], -300.0, 0.1, False)
+    drive = actuator.current_reference(PR["plant"], PR["actuator"], 300.0, 0.1, False)
+    brake = actuator.current_reference(PR["plant"], PR["actuator"], -300.0, 0.1, False)
     assert drive == pytest.approx(300.0 / (pl.efficiency * pl.force_constant))
     assert brake == pytest.approx(-300.0 * pl.efficiency / pl.force_constant)
 

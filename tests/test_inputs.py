@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from calib.ecu_params import default_gains_path
+from calib.control_design import default_gains_path
 from hil.transport.codec import Codec, DbcError
 from hil.config import default_vehicle
 
@@ -120,3 +120,28 @@ def test_segments_shorter_than_the_settling_window_are_flagged_not_scored(tmp_pa
     assert short["scored"] is False and "not scored" in short["note"]
     assert short["ratio"] == {"ba": None, "sws": None, "dtd": None}
     assert long_["scored"] is True and 0 < long_["ratio"]["ba"] < 2
+
+
+def test_a_full_disk_under_out_is_one_line_and_leaves_no_temporary_file(tmp_path, monkeypatch,
+                                                                        capsys):
+    """``hil sim --out`` where the disk fills up: one line naming --out, exit 1, never a
+    traceback from the log writer; and an atomic write that fails leaves no ``*.tmp``."""
+    import errno
+
+    from hil.__main__ import main
+    from hil.cli import write_atomic
+    from hil.transport.buslog import BusLogFile
+
+    def full(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(BusLogFile, "write", full)
+    with pytest.raises(SystemExit) as exc:
+        main(["sim", "--route", "city", "--duration", "1", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 1 and "Traceback" not in err and len(err.splitlines()) == 1
+    assert err.endswith(f"--out {tmp_path / 'run'}: cannot write: No space left on device")
+    monkeypatch.setattr(Path, "replace", full)     # (written, then the rename fails)
+    with pytest.raises(OSError):
+        write_atomic(tmp_path / "report.json", "{}")
+    assert list(tmp_path.glob("*.tmp")) == [] and not (tmp_path / "report.json").exists()

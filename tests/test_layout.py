@@ -77,3 +77,31 @@ def test_firmware_functions_stay_short_and_the_tick_reads_in_one_screen():
     assert function_lengths(ROOT / "firmware" / "ecu.py")["tick"] <= 50
     ecu_text = (ROOT / "firmware" / "ecu.py").read_text()
     assert "fx_tables" not in ecu_text                       # (tables come in built)
+
+
+PACKAGES = ("firmware", "calib", "hil", "tools")
+MAX_FILE_LINES = 500
+MAX_FUNCTION_LINES = 80     # outside kernels/ (compiled code keeps a stage in one function)
+HIL_TOP_MODULES = {"__init__.py", "__main__.py", "cli.py", "config.py", "hub.py"}
+
+
+def test_no_file_over_500_lines_and_no_function_over_80_outside_the_kernels():
+    """A file holds one concept and a function reads in a screen or two (docs/architecture.md);
+    the compiled kernels are exempt from the function rule only."""
+    files = [p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))]
+    assert len(files) > 100
+    big = {str(p.relative_to(ROOT)): n for p in files
+           if (n := len(p.read_text().splitlines())) > MAX_FILE_LINES}
+    assert not big, big
+    long = {f"{p.relative_to(ROOT)}:{name}": n for p in files if "kernels" not in p.parts
+            for name, n in function_lengths(p).items() if n > MAX_FUNCTION_LINES}
+    assert not long, long
+
+
+def test_hil_holds_subpackages_and_at_most_four_modules_at_its_top():
+    top = {p.name for p in (ROOT / "hil").glob("*.py")}
+    assert top == HIL_TOP_MODULES, top            # __main__, cli and at most 4 more
+    assert len(top - {"__init__.py", "__main__.py", "cli.py"}) <= 4
+    subs = {p.name for p in (ROOT / "hil").iterdir() if (p / "__init__.py").is_file()}
+    assert subs == {"apps", "bench", "faults", "kernels", "nodes", "report", "sim", "transport",
+                    "validate"}, subs

@@ -40,7 +40,7 @@ SUV = load_vehicle(ROOT / "hil" / "vehicles" / "suv.toml")
 
 
 def test_comfort_b_road_suv():
-    """The SUV's own comfort design (calib.ecu_params.comfort_gains): the same acceptance, and
+    """The SUV's own comfort design (calib.control_design.comfort_gains): the same acceptance, and
     the mean BA ratio within 0.03 of the SUV's own limit."""
     ratios = []
     for seed in SEEDS:

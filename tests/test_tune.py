@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hil.config import ConfigError, default_vehicle, load_vehicle
-from calib.ecu_params import default_gains_path, load_gains
+from calib.control_design import default_gains_path, load_gains
 from calib.options import DesignOptions
 from calib.model import linear_model
 from hil.sim.road import gq_of

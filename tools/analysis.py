@@ -87,7 +87,7 @@ def scatter(cfg: VehicleConfig, speed: float, window_s: float, convention: str =
     (``calib.model.window_scatter``), the chance that it comes out above 1.0, and the drive
     a ratio needs to stay below 1.0 at 3 sigma (the approximation holds for drives much
     longer than the body's period: read a few seconds as "any drive")."""
-    from calib.ecu_params import comfort_total_gain, safety_gain
+    from calib.control_design import comfort_total_gain, safety_gain
     from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 
     opts = DesignOptions()

@@ -13,7 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from calib.ecu_params import default_gains_path
+from calib.control_design import default_gains_path
 from calib.galqr import tune, vehicle_digest
 from calib.options import NOMINAL_SPEED_MPS
 from hil.nodes import sil

@@ -90,9 +90,9 @@ def _write(out: Optional[Path], name: str, summary: dict, trace: Optional[dict])
     out.mkdir(parents=True, exist_ok=True)
     if trace is not None:
         np.savez(out / f"{name}.npz", **trace)
-    tmp = out / f"{name}.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=1) + "\n")
-    tmp.replace(out / f"{name}.json")
+    from hil.cli import write_atomic
+
+    write_atomic(out / f"{name}.json", json.dumps(summary, indent=1) + "\n")
 
 
 def _ready() -> None:

@@ -53,7 +53,7 @@ def _check_inputs(args: RunSpec):
         if args.script:
             load_driver_script(args.script)
         if args.gains:
-            from calib.ecu_params import load_gains
+            from calib.control_design import load_gains
 
             load_gains(Path(args.gains), cfg)
     except ConfigError as exc:

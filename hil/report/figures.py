@@ -17,6 +17,12 @@ from firmware.params import GRADE_NAMES, MODE_NAMES
 FIGURES = ("timeseries.png", "psd.png", "comfort.png", "modes.png", "road.png", "energy.png")
 
 
+# what the energy columns of a SIL or bench report mean (terminal table and report.md)
+ENERGY_COLUMNS = ("Energy over the scored window: stored J into the storage element, drawn J "
+                  "net from the supply (negative: energy returned to the supply through the "
+                  "bridge).")
+
+
 def _clean(value):
     from hil.cli import _clean as clean
 
@@ -27,10 +33,9 @@ def write_outputs(out: Path, report: dict, trace, cfg=None, route=None) -> list[
     """Write report.json, report.md and the figures into ``out``; returns the paths."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / "report.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(_clean(report), indent=2) + "\n")
-    tmp.replace(path)
+    from hil.cli import write_atomic
+
+    path = write_atomic(out / "report.json", json.dumps(_clean(report), indent=2) + "\n")
     figs = write_figures(out, report, trace, cfg, route)
     md = out / "report.md"
     md.write_text(markdown(report, [f.name for f in figs]))
@@ -81,11 +86,11 @@ def markdown(report: dict, figures: list[str]) -> str:
                   f"p99 {rt['lag_p99_us']:.0f} us, max {rt['lag_max_us']:.0f} us", ""]
     lines += ["Ratios are active / passive twin RMS on the same road, after "
               f"{report['settle_s']:g} s of each segment.", "",
-              "| segment | BA | SWS | DTD | BA m/s² | SWS mm | DTD mm | grade ok | harvested W "
-              "| drawn W | road est. RMSE mm |",
+              "| segment | BA | SWS | DTD | BA m/s² | SWS mm | DTD mm | grade ok | stored J "
+              "| drawn J | road est. RMSE mm |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in report["segments"]:
-        r, a, t = s["ratio"], s["active"], s["duration_s"]
+        r, a = s["ratio"], s["active"]
         if not s.get("scored", True):
             lines.append(f"| {s['grade']}@{s['speed_mps']:g} m/s | {s['note']} |"
                          + " |" * 10)
@@ -93,8 +98,9 @@ def markdown(report: dict, figures: list[str]) -> str:
         lines.append(
             f"| {s['grade']}@{s['speed_mps']:g} m/s | {r['ba']:.3f} | {r['sws']:.3f} | "
             f"{r['dtd']:.3f} | {a['ba_rms_mps2']:.3f} | {1e3 * a['sws_rms_m']:.2f} | "
-            f"{1e3 * a['dtd_rms_m']:.2f} | {s['grade_accuracy']:.2f} | {s['harvested_w']:.2f} | "
-            f"{s['consumed_j'] / t:.1f} | {1e3 * s['road_estimate_rmse_m']:.1f} |")
+            f"{1e3 * a['dtd_rms_m']:.2f} | {s['grade_accuracy']:.2f} | {s['harvested_j']:.1f} | "
+            f"{s['consumed_j']:.1f} | {1e3 * s['road_estimate_rmse_m']:.1f} |")
+    lines += ["", ENERGY_COLUMNS]
     lines += ["", "Frames sent: " + ", ".join(
         f"{node} {sum(c.values())}" for node, c in report["frames_sent"].items()), ""]
     for f in figures:

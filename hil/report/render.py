@@ -9,7 +9,7 @@ from pathlib import Path
 from hil.cli import progress_bar
 from calib.vehicle import VehicleConfig
 from hil.sim.drive import drive, segment_masks
-from hil.report.figures import switches_phrase
+from hil.report.figures import ENERGY_COLUMNS, switches_phrase
 from calib.model import linear_model, passive_rms
 from hil.sim.road import Route
 
@@ -59,11 +59,9 @@ def finish(report: dict, out_dir: str | None, name: str, as_json: bool, render) 
 def write_json(report: dict, out_dir: str | Path, name: str) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / name
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    tmp.replace(path)
-    return path
+    from hil.cli import write_atomic
+
+    return write_atomic(out / name, json.dumps(report, indent=2) + "\n")
 
 
 def render_drive(report: dict) -> None:
@@ -97,26 +95,29 @@ def render_sil(report: dict) -> None:
     if report.get("ecu_arithmetic") == "fixed":
         ctrl += ", fixed-point ECU"
     table = Table(box=box.SIMPLE_HEAD,
-                  title=f"{report.get('bench', {}).get('harness', 'sil').upper()}, route '{report['route']}', mode {report['mode']}{ctrl}, "
-                        f"seed {report['seed']}",
-                  caption=f"ratios to the passive twin (RMS after {report.get('settle_s', 3):g} s "
-                          f"per segment); grade accuracy {report['grade_accuracy']:.3f}; "
-                          f"{switches_phrase(report)}; trace "
-                          f"{report['trace_sha256'][:16]}")
-    for col in ("seg", "BA", "SWS", "DTD", "F rms N", "grade ok", "harv W", "cons W", "road mm"):
-        table.add_column(col, justify="right", no_wrap=True, min_width=5)
+                  title=f"{report.get('bench', {}).get('harness', 'sil').upper()}, route "
+                        f"'{report['route']}', mode {report['mode']}{ctrl}, seed {report['seed']}")
+    # (short headers: the table fits 80 columns; what they mean is said below it)
+    for col in ("seg", "BA", "SWS", "DTD", "F N", "grade", "stored J", "drawn J", "road mm"):
+        table.add_column(col, justify="right", no_wrap=True, min_width=max(5, len(col)))
     for s in report["segments"]:
         r = s["ratio"]
-        t = s["duration_s"]
         if not s.get("scored", True):
             table.add_row(f"{s['grade']}@{s['speed_mps']:g}", "not scored: shorter than the "
                           "settling window", *[""] * 7)
             continue
         table.add_row(f"{s['grade']}@{s['speed_mps']:g}", f"{r['ba']:.3f}", f"{r['sws']:.3f}",
                       f"{r['dtd']:.3f}", f"{s['active']['force_rms_n']:.0f}",
-                      f"{s['grade_accuracy']:.2f}", f"{s['harvested_w']:.2f}",
-                      f"{s['consumed_j'] / t:.1f}", f"{s['road_estimate_rmse_m'] * 1e3:.1f}")
-    Console().print(table)
+                      f"{s['grade_accuracy']:.2f}", f"{s['harvested_j']:.1f}",
+                      f"{s['consumed_j']:.1f}", f"{s['road_estimate_rmse_m'] * 1e3:.1f}")
+    console = Console()
+    console.print(table)
+    console.print(
+        f"seg: grade@speed (m/s). BA, SWS, DTD: ratios to the passive twin (RMS after "
+        f"{report.get('settle_s', 3):g} s of each segment); F N: the force's RMS; grade: the "
+        f"share of ticks with the right grade estimate; road mm: the road estimate's RMSE. "
+        f"{ENERGY_COLUMNS} Grade accuracy {report['grade_accuracy']:.3f}; "
+        f"{switches_phrase(report)}; trace {report['trace_sha256'][:16]}.", soft_wrap=False)
     if "verdict" in report:
         from hil.report.verdict import render
 

@@ -191,10 +191,9 @@ def write_junit(path: str | Path, suite: str, checks: list[Check], time_s: float
     ET.indent(root)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
-    tmp.replace(path)
-    return path
+    from hil.cli import write_atomic
+
+    return write_atomic(path, ET.tostring(root, encoding="utf-8", xml_declaration=True))
 
 
 def _text(value) -> str:
