@@ -8,7 +8,7 @@ from firmware import adc, safety
 from hil.faults.app import InvalidRequest, RequestSpam
 from hil.faults.base import REPLAY_AGE_TICKS, Fault, Window
 from hil.faults.commands import CommandLoss, ForgedCommand, ReplayedCommand
-from hil.faults.config import BrokenFile
+from hil.faults.files import BrokenFile
 from hil.faults.frames import (CorruptChecksum, CounterSkip, FrameLoss, Flood, ShortFrame,
                                SignalForced, UnknownFrame)
 from hil.faults.hardware import OpenWinding, StuckDuty, SupplyDrop
