@@ -15,18 +15,16 @@ import numpy as np
 from scipy.linalg import expm
 
 from calib import cache
+from calib.control_design import (_feedback_designs, comprehensive_gain, damping_scale,
+                                   default_gains_path)
 from calib.errors import ConfigError
+from calib.fdi_design import fdi_params
 from calib.iso8608 import CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M
 from calib.model import (linear_model, mechanics, paper_thresholds, state_covariance,
                          van_loan_integral)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from calib.vehicle import VehicleConfig
-from calib.control_design import (_feedback_designs, comprehensive_gain, damping_scale,
-                                   default_gains_path)
-from calib.fdi_design import fdi_params
 from firmware import params as fp
-
-
 
 
 def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
@@ -35,8 +33,6 @@ def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
     M[:n, :n] = A
     M[:n, n] = B
     return expm(M * dt)[:n, n]
-
-
 
 
 def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") -> fp.AkfParams:

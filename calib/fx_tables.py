@@ -11,11 +11,11 @@ import pickle
 import numpy as np
 
 from calib import cache
-from firmware.kernels.bppid import FORCE_REF_N
 from firmware.fixedpoint import best_frac, to_fixed
 from firmware.fx.tables import (ADC_FRAC, F_ACC, F_CUR, F_FORCE, F_JERK, F_NN, F_POS, F_TANH, F_VEL,
                                 F_VOLT, F_W, GAIN_HEADROOM_BITS, MEAS_FRAC, STATE_FRAC,
                                 TANH_N, TANH_STEP_BITS, Fx, FxTables)
+from firmware.kernels.bppid import FORCE_REF_N
 from firmware.params import EcuParams
 
 
@@ -31,7 +31,6 @@ def fx(v: float, f_in: int, f_out: int, headroom_bits: int = 0) -> Fx:
 
 def fx_at(v: float, frac: int) -> Fx:
     return Fx(to_fixed(float(v), frac), frac, float(v))
-
 
 
 def steady_gains(p: EcuParams, road_intensity: float, ticks: int = 3000) -> np.ndarray:

@@ -16,10 +16,10 @@ from __future__ import annotations
 import argparse
 
 from hil import config
-from hil.report import verdict
 from hil.cli import (add_cache_argument, add_design_argument, add_json_argument,
                      add_log_arguments, add_vehicle_argument, apply_cache_argument,
                      positive_float, route_or_exit, seed_arg, vehicle_or_exit)
+from hil.report import verdict
 
 # the commands whose options include python-can's bus options: their parsers import can,
 # which imports every log format's library (asammdf and pandas: a quarter second); for any

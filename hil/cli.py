@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
 from calib.options import load_options
-from hil.config import ConfigError, load_vehicle
 from calib.vehicle import VehicleConfig
+from hil.config import ConfigError, load_vehicle
 from hil.sim.road import GRADES, Route, load_route
 
 EXIT_CONFIG = 2

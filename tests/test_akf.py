@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
+from calib.ecu_params import build
+from calib.options import DesignOptions
 from firmware import akf
 from firmware.ecu import init as ecu_init
 from firmware.kernels import akf as kern
 from firmware.layout import params_record
-from hil.nodes import sil
 from hil.config import default_vehicle
-from calib.ecu_params import build
-from calib.options import DesignOptions
+from hil.nodes import sil
 from hil.sim.road import constant_route
 
 CFG = default_vehicle()

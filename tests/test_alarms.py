@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from calib import cache
-from hil.validate import alarms
 from hil.sim.road import load_route
+from hil.validate import alarms
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.config import default_vehicle, load_vehicle
+from calib.linear import Normalised, physical_limits
 from calib.model import linear_model, output_covariance, passive_rms
+from hil.config import default_vehicle, load_vehicle
 from hil.sim.road import gq_of
 from tools.analysis import limits, passive, thresholds
-from calib.linear import Normalised, physical_limits
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()

@@ -13,10 +13,10 @@ from pathlib import Path
 import can
 import pytest
 
+from hil.nodes import ID
 from hil.transport.buslog import (LOG_FORMATS, SIL_CHANNEL, convert, dut_tx_ids, parse_formats,
                         parse_start_time, read_log)
 from hil.transport.codec import DBC_PATH, Codec
-from hil.nodes import ID
 
 ROOT = Path(__file__).resolve().parents[1]
 START = "2026-12-02T09:00:00Z"

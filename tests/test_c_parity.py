@@ -13,15 +13,15 @@ from pathlib import Path
 import cantools
 import pytest
 
+from calib import c_tables as tables
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
 from firmware import params as fp
 from firmware.fx.tables import Fx
-from hil.nodes import sil
-from hil.transport.codec import Codec, raw_range
 from hil.config import default_vehicle
+from hil.nodes import sil
 from hil.sim.road import load_route
-from calib import c_tables as tables
+from hil.transport.codec import Codec, raw_range
 from tools.c_build import C_DIR, GEN, REPLAY_SOURCES, compile_c
 from tools.c_build import replay_input as trace_text
 

@@ -15,8 +15,8 @@ from calib import cache
 from calib.ecu_params import build
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
-from hil.nodes import sil
 from hil.config import default_vehicle
+from hil.nodes import sil
 from hil.sim.road import load_route
 
 ROOT = Path(__file__).resolve().parents[1]

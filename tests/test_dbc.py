@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from firmware import safety
+from hil.sim.road import MAX_SPEED_MPS
 from hil.transport import secoc
 from hil.transport.codec import DBC_PATH, Codec, declared_raw_range, raw_range, to_raw
-from hil.sim.road import MAX_SPEED_MPS
 from tools.busload import bus_load
 
 CODEC = Codec()

@@ -18,15 +18,15 @@ from firmware.diag import SESSION_EXTENDED, dtc, fdi, uds
 from firmware.diag.view import DiagView
 from firmware.ecu import Ecu, Inputs
 from firmware.ecu import init as ecu_init
+from hil import nodes
+from hil.config import default_vehicle
 from hil.faults.base import PLAUSIBLE_TICKS, Window
 from hil.faults.injector import Injector
 from hil.faults.registry import SUPPLY_DROP
-from hil import nodes
+from hil.nodes.sil import app_node, ecu_params
+from hil.sim.road import load_route
 from hil.transport import secoc
 from hil.transport.codec import Codec
-from hil.config import default_vehicle
-from hil.sim.road import load_route
-from hil.nodes.sil import app_node, ecu_params
 
 P = build(default_vehicle())
 SAFETY_DTC = dtc.TF | dtc.TFTOC | dtc.PDTC | dtc.CDTC | dtc.TFSLC | dtc.WIR   # 0xAF

@@ -12,15 +12,15 @@ from pathlib import Path
 
 import pytest
 
+from calib.ecu_params import build
 from firmware import safety
+from hil.config import default_vehicle
 from hil.faults.base import MAX_PLAUSIBLE_TICKS
 from hil.faults.registry import BY_NAME, FAULTS, UNKNOWN_FRAME_ID
-from hil.validate import faults
+from hil.nodes import ID
 from hil.transport.buslog import read_log
 from hil.transport.codec import Codec
-from hil.config import default_vehicle
-from calib.ecu_params import build
-from hil.nodes import ID
+from hil.validate import faults
 from tests import golden
 from tests.procutil import children, cmdline
 

@@ -6,13 +6,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from calib.ecu_params import build
 from firmware import actuator, adc, control, modes
 from firmware import params as fp
 from firmware.ecu import Ecu, Inputs, _counts
 from firmware.ecu import init as ecu_init
 from firmware.layout import params_record
 from hil.config import default_vehicle
-from calib.ecu_params import build
 
 P = build(default_vehicle())
 

@@ -15,8 +15,8 @@ from firmware.fixedpoint import (INT32_MAX, INT32_MIN, add, best_frac, div_round
 from firmware.fx.path import adc_signal, tanh_q
 from firmware.fx.tables import ADC_FRAC, F_NN
 from firmware.layout import params_record
-from hil.nodes import sil
 from hil.config import default_vehicle
+from hil.nodes import sil
 from hil.sim.road import constant_route
 
 CFG = default_vehicle()

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from firmware import safety
-from hil.transport import secoc
-from hil.transport.codec import Codec, to_raw
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels.cmac import Cmac
+from hil.transport import secoc
+from hil.transport.codec import Codec, to_raw
 
 CODEC = Codec()
 NAMES = tuple(m.name for m in CODEC.db.messages)

@@ -7,9 +7,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from firmware import safety
-from hil.transport.codec import Codec
 from hil.config import ConfigError, load_vehicle
 from hil.sim.road import load_route
+from hil.transport.codec import Codec
 
 CODEC = Codec()
 FUZZ = settings(max_examples=300, derandomize=True, deadline=None,

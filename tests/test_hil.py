@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from firmware import params as fp
-from hil.transport.buslog import SIL_CHANNEL, read_log, same_channel
 from hil.nodes import ID
+from hil.transport.buslog import SIL_CHANNEL, read_log, same_channel
 from tests import golden
 from tests.procutil import children as _children
 from tests.procutil import cmdline as _cmdline

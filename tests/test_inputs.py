@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from calib.control_design import default_gains_path
-from hil.transport.codec import Codec, DbcError
 from hil.config import default_vehicle
+from hil.transport.codec import Codec, DbcError
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE3 = (ROOT / "hil" / "vehicles" / "table3.toml").read_text()

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from firmware.kernels import akf as akf_kernels
-from hil.nodes import sil
 from hil.cli import _clean
 from hil.config import default_vehicle
+from hil.nodes import sil
 from hil.sim.plant import QuarterCarPlant
 from hil.sim.road import constant_route, load_route
 

@@ -6,11 +6,11 @@ import pytest
 
 from firmware import params as fp
 from firmware import safety
-from hil.nodes import sil
-from hil.transport.codec import Codec
 from hil.config import ConfigError, default_vehicle, load_driver_script
+from hil.nodes import sil
 from hil.nodes import ID, AppNode, EcuNode, LockstepClock, PlantNode, run_in_process
 from hil.sim.road import constant_route
+from hil.transport.codec import Codec
 
 CFG = default_vehicle()
 CODEC = Codec()

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from calib.model import linear_model, passive_rms
 from hil.config import default_vehicle, load_vehicle
 from hil.sim.drive import drive
-from calib.model import linear_model, passive_rms
 from hil.sim.plant import QuarterCarPlant
 from hil.sim.road import constant_route, make_segment, Route
 

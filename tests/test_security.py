@@ -12,13 +12,13 @@ import pytest
 
 from firmware import params as fp
 from firmware import safety
+from hil.config import ConfigError, default_vehicle
+from hil.nodes import ID, EcuNode, PlantNode, run_in_process
+from hil.nodes.sil import app_node, ecu_params
+from hil.sim.road import constant_route
 from hil.transport import auth, secoc
 from hil.transport.bus import BusError, BusSpec, Hub, close_bus
 from hil.transport.codec import Codec
-from hil.config import ConfigError, default_vehicle
-from hil.nodes import ID, EcuNode, PlantNode, run_in_process
-from hil.sim.road import constant_route
-from hil.nodes.sil import app_node, ecu_params
 
 ROOT = Path(__file__).resolve().parents[1]
 CODEC = Codec()

@@ -8,9 +8,9 @@ from scipy.signal import freqz
 
 from calib.vehicle import SensorChannel
 
+from firmware.fixedpoint import round_half_away
 from hil.config import default_vehicle
 from hil.sim.metrics import peak, rising_edges, rms, wk_digital, wk_weighted_rms
-from firmware.fixedpoint import round_half_away
 from hil.sim.sensors import SensorSuite, from_counts, to_counts
 
 CH = SensorChannel(noise_std=0.0, range_min=-10.0, range_max=10.0, bits=12)

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calib.linear import physical_limits
+from calib.model import linear_model
+from hil.config import default_vehicle, load_vehicle
 from hil.nodes import sil
+from hil.sim.road import constant_route, gq_of, load_route
 from hil.validate.acceptance import (GRADE_ACCURACY, OWN_LIMIT_GAP, REGEN_ACCEPTANCE,
                             REGEN_HARVEST_SHARE, violations)
-from hil.config import default_vehicle, load_vehicle
-from calib.model import linear_model
-from hil.sim.road import constant_route, gq_of, load_route
-from calib.linear import physical_limits
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()

@@ -11,11 +11,11 @@ import sys
 import numpy as np
 import pytest
 
-from hil.nodes import fastsil, sil
-from hil.transport.codec import Codec
 from hil.config import default_vehicle, load_vehicle
+from hil.nodes import fastsil, sil
 from hil.nodes import AppNode, EcuNode, PlantNode
 from hil.sim.road import load_route
+from hil.transport.codec import Codec
 
 CFG = default_vehicle()
 KEY = bytes(range(16))

@@ -15,10 +15,10 @@ import pytest
 
 from calib.ecu_params import build
 from calib.fx_tables import build_tables
+from firmware import ecu as tick_ecu
 from firmware.diag import uds
 from firmware.ecu import Inputs
 from firmware.ecu import Ecu
-from firmware import ecu as tick_ecu
 from firmware.layout import params_record
 from hil.config import default_vehicle
 from tests.golden import faulted

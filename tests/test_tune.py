@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.config import ConfigError, default_vehicle, load_vehicle
 from calib.control_design import default_gains_path, load_gains
-from calib.options import DesignOptions
-from calib.model import linear_model
-from hil.sim.road import gq_of
-from calib.linear import RelativeFamily, physical_limits
 from calib.galqr import tune
+from calib.linear import RelativeFamily, physical_limits
+from calib.model import linear_model
+from calib.options import DesignOptions
+from hil.config import ConfigError, default_vehicle, load_vehicle
+from hil.sim.road import gq_of
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()

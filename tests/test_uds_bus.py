@@ -14,13 +14,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from firmware.diag import dtc
-from hil.apps import diag
 from hil import nodes
-from hil.transport import secoc
-from hil.transport.codec import Codec
+from hil.apps import diag
 from hil.config import default_vehicle
 from hil.nodes import ID
 from hil.nodes.sil import ecu_params
+from hil.transport import secoc
+from hil.transport.codec import Codec
 
 ROOT = Path(__file__).resolve().parents[1]
 P = ecu_params(default_vehicle(), "comfort")

@@ -9,10 +9,10 @@ from pathlib import Path
 import junitparser
 import pytest
 
-from hil.report import verdict
 from hil.config import default_vehicle
-from hil.sim.road import load_route
 from hil.nodes.sil import run
+from hil.report import verdict
+from hil.sim.road import load_route
 
 ROOT = Path(__file__).resolve().parents[1]
 B20 = str(ROOT / "tests" / "golden" / "routes" / "b20.toml")

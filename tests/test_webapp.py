@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 
 from firmware.params import MODE_NAMES
+from hil.nodes import ID
 from hil.transport.buslog import read_log
 from hil.transport.codec import Codec
-from hil.nodes import ID
 
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "out" / "test-artifacts"

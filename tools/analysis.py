@@ -15,13 +15,13 @@ import math
 
 import numpy as np
 
+from calib.linear import physical_limits
+from calib.model import linear_model, paper_thresholds, passive_rms, window_scatter
+from calib.vehicle import VehicleConfig
 from hil.cli import (add_json_argument, add_vehicle_argument, emit, fail, grade_arg,
                      positive_float, progress_bar, seed_arg, speed_arg, vehicle_or_exit)
-from calib.vehicle import VehicleConfig
 from hil.sim.drive import drive
-from calib.model import linear_model, paper_thresholds, passive_rms, window_scatter
 from hil.sim.road import DEFAULT_CUTOFF_N_PER_M, constant_route, gq_of
-from calib.linear import physical_limits
 
 SETTLE_S = 5.0
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 from concurrent.futures import ProcessPoolExecutor
 
-from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
-from calib.model import linear_model
-from hil.sim.road import constant_route, gq_of
 from calib.linear import physical_limits
+from calib.model import linear_model
+from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
+from hil.sim.road import constant_route, gq_of
 
 # controller -> the mode it runs in
 RUNS = (("bppid", "comfort"), ("pid", "comfort"), ("skyhook", "comfort"), ("lqr", "safety"),

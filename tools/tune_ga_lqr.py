@@ -16,9 +16,9 @@ from pathlib import Path
 from calib.control_design import default_gains_path
 from calib.galqr import tune, vehicle_digest
 from calib.options import NOMINAL_SPEED_MPS
-from hil.nodes import sil
-from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
 from calib.vehicle import VehicleConfig
+from hil.cli import add_json_argument, add_vehicle_argument, emit, positive_float, seed_arg, vehicle_or_exit
+from hil.nodes import sil
 from hil.sim.road import constant_route
 
 

@@ -10,10 +10,10 @@ from typing import Optional
 
 from firmware import safety
 from firmware.params import GRADE_NAMES, MODE_NAMES
-from hil.transport.buslog import BusLogFile
-from hil.transport.codec import Codec, fault_word
 from hil.apps.driver import name_of
 from hil.nodes import ID, LockstepClock
+from hil.transport.buslog import BusLogFile
+from hil.transport.codec import Codec, fault_word
 
 
 class Logger(threading.Thread):

@@ -10,13 +10,13 @@ from typing import Optional
 
 import numpy as np
 
+from hil.bench.buswatch import Logger
+from hil.bench.spec import RunSpec
 from hil.nodes import sil
+from hil.nodes import message_name
 from hil.report import verdict
 from hil.transport.bus import BusSpec
 from hil.transport.buslog import convert
-from hil.nodes import message_name
-from hil.bench.buswatch import Logger
-from hil.bench.spec import RunSpec
 
 
 NODES = ("ecu", "app", "plant")

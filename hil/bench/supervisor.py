@@ -24,19 +24,19 @@ from pathlib import Path
 from typing import Optional
 
 
-from hil.transport import secoc
-from hil.nodes import sil
-from hil.transport.auth import SECRET_ENV
-from hil.transport.bus import (RT_PRIORITY, BusError, BusSpec, Hub, SocketcanTap, close_bus,
-                               resolve, rt_of)
-from hil.transport.buslog import HUB_CHANNEL, LOG_FORMATS, BusLogFile
-from hil.transport.codec import Codec
-from hil.nodes import ID
 from hil.bench.buswatch import Logger, live_view, progress_line
 from hil.bench.nodeproc import (EXIT_INTERRUPTED, EXIT_NODE, Interrupted, Node, NodeFailure,
                                on_signals, stopped)
 from hil.bench.runreport import NODES, log_copies, partial_report, write_report
 from hil.bench.spec import RunSpec
+from hil.nodes import sil
+from hil.nodes import ID
+from hil.transport import secoc
+from hil.transport.auth import SECRET_ENV
+from hil.transport.bus import (RT_PRIORITY, BusError, BusSpec, Hub, SocketcanTap, close_bus,
+                               resolve, rt_of)
+from hil.transport.buslog import HUB_CHANNEL, LOG_FORMATS, BusLogFile
+from hil.transport.codec import Codec
 
 STALL_S = 20.0               # no progress for this long stops the run (--stall-s)
 

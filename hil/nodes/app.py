@@ -6,17 +6,16 @@ from collections import Counter, deque
 from typing import Callable, Iterable, Optional
 
 
-from firmware.modes import REASON_NONE
 from firmware import params as fp
+from firmware.modes import REASON_NONE
+from hil.nodes.base import ID, Frame, Tx, period_ticks
 from hil.transport import secoc
 from hil.transport.codec import Codec, fault_word
-from hil.nodes.base import ID, Frame, Tx, period_ticks
 
 REQ_KINDS = {"none": fp.REQ_NONE, "accept": fp.REQ_ACCEPT, "refuse": fp.REQ_REFUSE,
              "choose": fp.REQ_CHOOSE}
 POLICIES = ("auto", "fixed", "refuse", "script", "interactive", "web")
 QUEUED = ("interactive", "web")       # the policies that send what a person chose
-
 
 
 class AppNode:

@@ -9,8 +9,8 @@ from typing import Callable, Iterable, Optional
 
 
 from firmware import safety
-from hil.transport.codec import Codec
 from hil.sim.road import GRADES
+from hil.transport.codec import Codec
 
 
 Frame = tuple[int, bytes]
@@ -20,7 +20,6 @@ _DB = Codec()
 ID = {m.name: m.frame_id for m in _DB.db.messages}
 NAME_OF = {v: k for k, v in ID.items()}
 OWNER = {m.name: (m.senders or [""])[0] for m in _DB.db.messages}
-
 
 
 def period_ticks(codec: Codec, name: str, dt_s: float) -> int:
@@ -72,10 +71,8 @@ class Tx:
         return ID[name], self.codec.encode(name, values, self._count(name))
 
 
-
 MISSING = object()   # a tick without a sensor frame (SIM_TICK: the ECU's timer ran alone)
 _FORGED = object()   # a secured frame whose MAC or freshness failed
-
 
 
 class LockstepClock:

@@ -12,18 +12,18 @@ import numpy as np
 
 from calib.fx_tables import build_tables
 from firmware import safety
-from firmware.diag import uds
 from firmware import params as fp
+from firmware.diag import uds
 from firmware.ecu import Ecu
 from firmware.layout import view
-from hil.transport import secoc
 from hil.kernels import bus as kb
 from hil.kernels import ecunode as ken
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels.cmac import Cmac
-from hil.transport.codec import Codec
 from hil.nodes.base import MISSING, ID, Frame, period_ticks, rx_spec
+from hil.transport import secoc
+from hil.transport.codec import Codec
 
 # What the trace hash takes per tick, in this order: the ECU's inputs, then its outputs, each
 # packed little-endian with its struct code. The two "reserved" fields are always 0; they stay
@@ -49,7 +49,6 @@ _RX_ROWS = {"VEHICLE_SPEED": (kb.R_SPEED, kb.M_SPEED),
             "DRIVER_REQUEST": (kb.R_REQ, kb.M_REQ)}
 _NO_COUNTS = (-1, -1, -1, -1)
 _SIM_TICK, _DIAG_REQUEST = ID["SIM_TICK"], ID["DIAG_REQUEST"]
-
 
 
 class EcuNode:

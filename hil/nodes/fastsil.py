@@ -31,12 +31,12 @@ import numpy as np
 
 from firmware.ecu import fx_entry
 from firmware.layout import view
-from hil.transport import secoc
 from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels import silloop as kl
 from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode, run_in_process
+from hil.transport import secoc
 
 CHUNK = 16384            # ticks between Python's turns (a multiple of the noise block, 256)
 _OWN = {"PLANT": ("VEHICLE_SPEED", "PLANT_SUPPLY", "SIM_TRUTH", "ENERGY_STATUS",

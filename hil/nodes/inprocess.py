@@ -56,7 +56,6 @@ def run_in_process(plant: PlantNode, ecu_node: EcuNode, app: AppNode,
     return {message_name(fid): n for fid, n in seen.items()}
 
 
-
 def warm_up(node, ticks: int = 30) -> None:
     """Run the node's code paths a few times on a throwaway copy before the real run: numba
     loads a kernel from its cache (or compiles it) on its first call, 0.2 s for the first one

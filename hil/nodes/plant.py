@@ -8,16 +8,16 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from firmware import safety
-from hil.transport import secoc
-from hil.transport.codec import Codec
 from calib.vehicle import VehicleConfig
+from firmware import safety
+from hil.nodes.base import (_FORGED, ID, NAME_OF, Frame, Tx, period_ticks,
+                             true_grade_index)
 from hil.sim.drive import road_at_ticks
 from hil.sim.plant import OBS, QuarterCarPlant
 from hil.sim.road import Route, drive_timeline, generate_profile
 from hil.sim.sensors import SensorSuite, SupplySensor
-from hil.nodes.base import (_FORGED, ID, NAME_OF, Frame, Tx, period_ticks,
-                             true_grade_index)
+from hil.transport import secoc
+from hil.transport.codec import Codec
 
 TWIN_CHUNK = 250                        # passive-twin ticks computed per batch
 

@@ -14,20 +14,20 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from calib.ecu_params import build, with_controllers
+from calib.options import DesignOptions
+from calib.vehicle import VehicleConfig
 from firmware import params as fp
 from firmware import safety
 from firmware.modes import REASON_ROAD_HOLDING
-from hil.nodes import fastsil
-from hil.transport import secoc
-from hil.report import verdict
-from hil.transport.codec import Codec
 from hil.config import CONTROLLERS, RUN_MODES as MODES, ConfigError
-from calib.vehicle import VehicleConfig
-from calib.ecu_params import build, with_controllers
-from calib.options import DesignOptions
-from hil.sim.metrics import rms
+from hil.nodes import fastsil
 from hil.nodes import AppNode, EcuNode, PlantNode, run_in_process
+from hil.report import verdict
+from hil.sim.metrics import rms
 from hil.sim.road import GRADES, Route
+from hil.transport import secoc
+from hil.transport.codec import Codec
 
 RUN_MODE_NAMES = {i: name for name, i in MODES.items()}     # 1: "regen", as hil sim says it
 

@@ -6,11 +6,11 @@ import dataclasses
 import json
 from pathlib import Path
 
-from hil.cli import progress_bar
-from calib.vehicle import VehicleConfig
-from hil.sim.drive import drive, segment_masks
-from hil.report.figures import ENERGY_COLUMNS, switches_phrase
 from calib.model import linear_model, passive_rms
+from calib.vehicle import VehicleConfig
+from hil.cli import progress_bar
+from hil.report.figures import ENERGY_COLUMNS, switches_phrase
+from hil.sim.drive import drive, segment_masks
 from hil.sim.road import Route
 
 SEGMENT_SETTLE_S = 3.0

@@ -11,8 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from firmware.fixedpoint import round_half_away
 from calib.vehicle import SENSOR_NAMES, SensorChannel, SensorParams
+from firmware.fixedpoint import round_half_away
 from hil.kernels import sensors as kern
 
 NOISE_BLOCK = 256   # ticks of noise drawn at once (the same stream as one draw per tick)

@@ -21,8 +21,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Optional
 
-from hil.report import verdict
 from hil.cli import add_cache_argument
+from hil.report import verdict
 
 DEFAULT_VEHICLES = ("table3.toml", "suv.toml")
 DEFAULT_SPEEDS = (10.0, 20.0, 30.0)

@@ -1,8 +1,10 @@
-"""Fault injection and the reliability campaign: ``python -m hil faults [--json]``.
+"""The reliability campaign: ``python -m hil faults [--json]``.
 
-The injector sits in the transmit and receive path of the plant and the driver-app nodes (a
+The faults are the families of ``hil.faults`` (one plug-in each, in ``hil.faults.registry``);
+their injector sits in the transmit and receive path of the plant and the driver-app nodes (a
 faulty transceiver, a broken sensor, a babbling sender, a careless app) and changes what they
-put on the bus, on a fixed schedule of tick windows. One lockstep run over the bus (hub or
+put on the bus, on a fixed schedule of tick windows; the campaign's outside clients (an
+attacker and a UDS tester) act on the bus itself. One lockstep run over the bus (hub or
 vcan0) drives the ECU through every bus fault in turn, separated by fault-free gaps; the
 configuration faults are separate ECU starts with a broken file. Each fault is then judged from
 the ECU's per-tick record (fault word, bridge enable), the plant's (passive fallback) and what
@@ -22,6 +24,7 @@ the driver app received (ECU_STATUS FAULTS/REASON):
 Everything is deterministic: the same seed gives the same campaign over the hub and in one
 process (``--in-process``), tick for tick.
 """
+
 from __future__ import annotations
 
 import contextlib
