@@ -337,3 +337,111 @@ def test_a_segment_under_the_road_holding_override_is_judged_by_the_mode_it_was_
     assert rep["mixed"] == [{"vehicle": "default", "segment": "D@20", "n": 1,
                              "road_holding_share": 0.13}]
     assert [(r["mode"], r["n"]) for r in rep["ratios"]] == [("safety", 1)]
+
+
+SPACE = """[campaign]
+routes = ["city"]
+duration_s = 4
+
+[[vehicle]]
+
+[space]
+samples = {n}
+sampler = "{sampler}"
+seed = 3
+calibration = "{calibration}"
+
+[space.ranges]
+sprung_mass_kg = [1.0, 1.3]
+tire_stiffness_n_per_m = [0.8, 1.2]
+winding_resistance_ohm = {{min = 0.2, max = 0.3}}
+spring_stiffness_n_per_m = [{spring_lo}, 1.0]
+"""
+
+
+def _space(tmp_path, n=6, sampler="lhs", calibration="nominal", spring_lo=0.05) -> Path:
+    path = tmp_path / f"space_{sampler}_{calibration}_{n}.toml"
+    path.write_text(SPACE.format(n=n, sampler=sampler, calibration=calibration,
+                                 spring_lo=spring_lo))
+    return path
+
+
+@pytest.mark.parametrize("sampler", ["lhs", "sobol"])
+def test_a_space_gives_the_same_cars_twice_and_records_the_infeasible(tmp_path, sampler):
+    """[space]: a seeded design, so the same file gives the same cars (and case ids); a Latin
+    hypercube puts one car in each of n strata of every range; an absolute range becomes the
+    factor on the base car's value; a car the bench cannot simulate (a spring that sags more
+    than 0.5 m) is recorded with the reason, not run and not an error."""
+    from hil.config import default_vehicle
+
+    camp = cp.load(_space(tmp_path, n=8, sampler=sampler))
+    again = cp.load(_space(tmp_path, n=8, sampler=sampler))
+    assert camp == again and len(camp.cases) + len(camp.infeasible) == 8
+    assert camp.infeasible and all("sags" in x["reason"] for x in camp.infeasible)
+    cars = [c["vehicle"] for c in camp.cases] + [x["vehicle"] for x in camp.infeasible]
+    assert sorted(c["sample"] for c in cars) == list(range(1, 9))
+    r0 = default_vehicle().actuator.winding_resistance_ohm
+    for c in cars:
+        f = c["factors"]
+        assert 1.0 <= f.get("sprung_mass_kg", 1.0) <= 1.3
+        assert 0.2 <= r0 * f["winding_resistance_ohm"] <= 0.3 + 1e-6
+        assert c["calibration"] == "nominal"
+    if sampler == "lhs":
+        strata = sorted(int((c["factors"].get("sprung_mass_kg", 1.0) - 1.0) / 0.3 * 8)
+                        for c in cars)
+        assert strata == list(range(8))
+    ok = cp.load(_space(tmp_path, n=8, sampler=sampler, spring_lo=0.8))
+    assert not ok.infeasible and len(ok.cases) == 8
+
+
+@pytest.mark.parametrize("table, want", [
+    ("samples = 0", "space.samples"), ("samples = 4\nsampler = 'grid'", "space.sampler"),
+    ("samples = 4\ncalibration = 'each'", "space.calibration"),
+    ("samples = 4\nwhat = 1", "unknown key 'space.what'"),
+    ("samples = 4\n[space.ranges]\nsprung_mass_kg = [1.3, 1.0]", "exceeds the upper"),
+    ("samples = 4\n[space.ranges]\nmass = [1.0, 1.3]", "space.ranges.mass"),
+    ("samples = 4\n[space.ranges]\nsprung_mass_kg = {min = 0, max = 1}", "positive"),
+    ("samples = 4", "must name at least one parameter"),
+])
+def test_a_bad_space_is_one_line(tmp_path, table, want):
+    path = tmp_path / "bad.toml"
+    path.write_text(f'[campaign]\nroutes = ["city"]\n[space]\n{table}\n')
+    with pytest.raises(ConfigError, match=want):
+        cp.load(path)
+    path.write_text('[campaign]\nroutes = ["city"]\n[[vehicle]]\nsprung_mass_kg = [1.2]\n'
+                    '[space]\nsamples = 2\n[space.ranges]\nsprung_mass_kg = [1.0, 1.3]\n')
+    with pytest.raises(ConfigError, match="one or the other"):
+        cp.load(path)
+
+
+def test_a_small_space_runs_with_one_nominal_calibration_or_one_per_car(tmp_path):
+    """The cars of a space with ``calibration = "nominal"`` all carry the base car's
+    calibration (one hash), judged on their own limits; ``per-car`` designs each anew; the
+    same case gives the same row twice (timing aside); infeasible cars land in the database
+    and the report with their reason."""
+    nominal = cp.load(_space(tmp_path, n=3, spring_lo=0.8)).cases
+    per_car = cp.load(_space(tmp_path, n=3, calibration="per-car", spring_lo=0.8)).cases
+    rows = [cp.run_case(c) for c in nominal]
+    assert len({r["calibration_sha256"] for r in rows}) == 1
+    assert all(r["segments"] and r["verdict"] in ("pass", "fail") for r in rows)
+    own = [cp.run_case(c)["calibration_sha256"] for c in per_car[:2]]
+    assert len(set(own)) == 2 and rows[0]["calibration_sha256"] not in own
+    again = cp.run_case(nominal[0])
+    timing = ("wall_s", "worker")
+    assert {k: v for k, v in again.items() if k not in timing} == \
+        {k: v for k, v in rows[0].items() if k not in timing}
+    camp = cp.load(_space(tmp_path, n=6))
+    db_path = tmp_path / "db" / "campaign.sqlite"
+    db_path.parent.mkdir()
+    db = cp.open_db(db_path)
+    with db:
+        for x in camp.infeasible:
+            db.execute("INSERT INTO infeasible VALUES (?, ?, ?, ?)",
+                       (cp.spec.label(x["vehicle"]), camp.name, x["reason"],
+                        json.dumps(x["vehicle"])))
+        db.execute("INSERT OR REPLACE INTO meta VALUES ('campaign', ?)", (camp.name,))
+    cp.store(db, camp.name, rows[0], str(db_path))
+    db.close()
+    rep = cp.report(db_path)
+    assert len(rep["infeasible"]) == len(camp.infeasible) > 0
+    assert rep["infeasible_share"] == len(camp.infeasible) / (len(camp.infeasible) + 1)

@@ -110,7 +110,7 @@ def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
 
     cfg = vehicle_config(case["vehicle"], case["noise"])
     route = route_of(case["route"])
-    params = sil.ecu_params(cfg, case["mode"])
+    params = sil.ecu_params(calibration_car(case["vehicle"], cfg), case["mode"])
     report, _ = sil.run(cfg, route, case["mode"], case["seed"], params=params,
                         duration_s=case["duration_s"], fixed_point=case["fixed_point"],
                         key=CASE_KEY)
@@ -130,6 +130,16 @@ def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
             "verdict": "fail" if failed else "pass", "failed": failed,
             "wall_s": time.perf_counter() - t0,
             "worker": f"{socket.gethostname()}:{os.getpid()}", "segments": segments}
+
+
+def calibration_car(spec: dict, cfg):
+    """The car the ECU is calibrated for: the case's own (``per-car``), or with a space's
+    ``calibration = "nominal"`` its base car (the file's, the nominal sensors): one
+    calibration shipped for every car the space holds."""
+    if spec.get("calibration") != "nominal":
+        return cfg
+    base = {k: v for k, v in spec.items() if k not in ("sample", "calibration")}
+    return vehicle_config({**base, "factors": {}}, 1.0)
 
 
 def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict:

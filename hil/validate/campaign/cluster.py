@@ -13,7 +13,7 @@ from typing import Optional
 
 from calib.errors import ConfigError
 from hil.validate.campaign.case import run_case, software_version
-from hil.validate.campaign.spec import Campaign, case_id
+from hil.validate.campaign.spec import Campaign, case_id, label
 from hil.validate.campaign.store import done_ids, open_db, store
 
 def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
@@ -27,6 +27,10 @@ def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
         db.execute("INSERT OR REPLACE INTO meta VALUES ('campaign', ?)", (campaign.name,))
         db.execute("INSERT OR REPLACE INTO meta VALUES ('max_gap', ?)",
                    (json.dumps(campaign.max_gap),))
+        db.executemany("INSERT OR REPLACE INTO infeasible VALUES (?, ?, ?, ?)",
+                       [(label(x["vehicle"]), campaign.name, x["reason"],
+                         json.dumps(x["vehicle"], sort_keys=True))
+                        for x in campaign.infeasible])
     version = software_version()
     other = db.execute("SELECT software_version, count(*) FROM cases WHERE software_version "
                        "!= ? GROUP BY software_version", (version,)).fetchall()

@@ -20,24 +20,7 @@ def report(db_path: Path) -> dict:
     is at most the campaign's ``max_gap`` above it; the segments driven in more than one
     mode (``MIXED``), with their share under the road-holding override. The verdict: every
     case passes and every mean is ok."""
-    if not Path(db_path).is_file():
-        raise ConfigError(f"{db_path}: no such campaign database")
-    db = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
-    try:
-        cases = db.execute("SELECT case_id, vehicle, factors, mode, verdict, failed, command, "
-                           "trace_sha256, wall_s FROM cases ORDER BY case_id").fetchall()
-        versions = dict(db.execute("SELECT software_version, count(*) FROM cases GROUP BY "
-                                   "software_version ORDER BY software_version"))
-        segs = db.execute("SELECT s.case_id, c.vehicle, c.factors, s.mode, s.grade, "
-                          "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
-                          "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
-                          "NULL").fetchall()
-        mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, "
-                           "json_extract(s.metrics, '$.road_holding_share') FROM segments s "
-                           "JOIN cases c USING (case_id) WHERE s.mode = ?", (MIXED,)).fetchall()
-        meta = dict(db.execute("SELECT key, value FROM meta"))
-    finally:
-        db.close()
+    cases, versions, segs, mixed, meta, infeasible = _read(db_path)
     name = meta.get("campaign", "?")
     max_gap = json.loads(meta.get("max_gap", "null"))
     criteria: dict[str, int] = {}
@@ -80,12 +63,44 @@ def report(db_path: Path) -> dict:
             "mixed": [{"vehicle": v, "segment": seg, "n": len(shares),
                        "road_holding_share": sum(shares) / len(shares)}
                       for (v, seg), shares in sorted(held.items())],
+            "infeasible": [{"vehicle": v, "reason": r} for v, r in infeasible],
+            "infeasible_share": len(infeasible) / max(1, len(infeasible) + len(
+                {(c[1], c[2]) for c in cases})),
             "worst": [{"case_id": s[0], "vehicle": s[1], "factors": json.loads(s[2]),
                        "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
                        "command": s[10]} for s in worst],
             "verdict": "pass" if cases and passed == len(cases) and not over
             and len(versions) == 1 else "fail"}
+
+
+def _read(db_path: Path) -> tuple:
+    """The rows a report is made of: cases, software versions, judged segments, mixed
+    segments, meta, infeasible cars."""
+    if not Path(db_path).is_file():
+        raise ConfigError(f"{db_path}: no such campaign database")
+    db = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
+    try:
+        cases = db.execute("SELECT case_id, vehicle, factors, mode, verdict, failed, command, "
+                           "trace_sha256, wall_s FROM cases ORDER BY case_id").fetchall()
+        versions = dict(db.execute("SELECT software_version, count(*) FROM cases GROUP BY "
+                                   "software_version ORDER BY software_version"))
+        segs = db.execute("SELECT s.case_id, c.vehicle, c.factors, s.mode, s.grade, "
+                          "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command "
+                          "FROM segments s JOIN cases c USING (case_id) WHERE s.gap IS NOT "
+                          "NULL").fetchall()
+        mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, "
+                           "json_extract(s.metrics, '$.road_holding_share') FROM segments s "
+                           "JOIN cases c USING (case_id) WHERE s.mode = ?", (MIXED,)).fetchall()
+        meta = dict(db.execute("SELECT key, value FROM meta"))
+        try:
+            infeasible = db.execute("SELECT vehicle, reason FROM infeasible ORDER BY vehicle"
+                                    ).fetchall()
+        except sqlite3.OperationalError:      # (a database from before [space])
+            infeasible = []
+    finally:
+        db.close()
+    return cases, versions, segs, mixed, meta, infeasible
 
 
 def _t95(dof: int) -> float:
@@ -137,6 +152,11 @@ def render(rep: dict) -> None:
               f"({100 * rep['pass_rate']:.1f} %), {rep['wall_s']:.0f} s of worker time")
     con.print("software: " + "; ".join(f"{v or '?'} ({n} cases)"
                                        for v, n in rep["software_versions"].items()))
+    if rep.get("infeasible"):
+        con.print(f"{len(rep['infeasible'])} sampled cars not run "
+                  f"({100 * rep['infeasible_share']:.1f} % of the space), each for its reason:")
+        for x in rep["infeasible"]:
+            con.print(f"  {x['vehicle']}: {x['reason']}")
     if rep["failures_by_criterion"]:
         t = Table(title="failures by criterion")
         t.add_column("criterion")

@@ -13,6 +13,9 @@ from pathlib import Path
 from typing import Optional
 
 from calib.errors import ConfigError
+from hil.validate.campaign.space import SPACE_KEYS, Space
+from hil.validate.campaign.space import factors as space_factors
+from hil.validate.campaign.space import parse as parse_space
 
 VEHICLE_KEYS = ("sprung_mass_kg", "unsprung_mass_kg", "spring_stiffness_n_per_m",
                 "damping_n_s_per_m", "tire_stiffness_n_per_m")
@@ -24,6 +27,7 @@ class Campaign:
     cases: tuple[dict, ...]
     acceptance: bool | str          # True, False or "relative"
     max_gap: Optional[float]
+    infeasible: tuple[dict, ...] = ()   # sampled cars not run: {"vehicle": spec, "reason": ...}
 
 
 def load(path: str | Path) -> Campaign:
@@ -36,9 +40,9 @@ def load(path: str | Path) -> Campaign:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     for key in data:
-        if key not in ("campaign", "vehicle", "criteria", "nonlinear"):
+        if key not in ("campaign", "vehicle", "criteria", "nonlinear", "space"):
             raise ConfigError(f"{path}: unknown table '{key}' (campaign, vehicle, criteria, "
-                              "nonlinear)")
+                              "nonlinear, space)")
     c = data.get("campaign")
     if not isinstance(c, dict):
         raise ConfigError(f"{path}: missing table [campaign]")
@@ -64,7 +68,12 @@ def load(path: str | Path) -> Campaign:
                                      and math.isfinite(duration) and duration > 0):
         raise ConfigError(f"{path}: campaign.duration_s must be a positive number")
     nonlinear = _nonlinear(path, data.get("nonlinear"))
-    vehicles = [v for t in (data.get("vehicle") or [{}]) for v in _vehicles(path, t, nonlinear)]
+    space = parse_space(path, data.get("space"))
+    vehicles, infeasible = [], []
+    for table in data.get("vehicle") or [{}]:
+        cars, out = _vehicles(path, table, nonlinear, space)
+        vehicles += cars
+        infeasible += out
     crit = data.get("criteria", {})
     max_gap = crit.get("max_gap")
     if max_gap is not None and not (isinstance(max_gap, (int, float)) and max_gap >= 0):
@@ -79,7 +88,7 @@ def load(path: str | Path) -> Campaign:
         cases.setdefault(case_id(case), case)
     cases = tuple(cases.values())
     return Campaign(str(c.get("name", path.stem)), cases, acceptance,
-                    None if max_gap is None else float(max_gap))
+                    None if max_gap is None else float(max_gap), tuple(infeasible))
 
 
 def _list(path, table, key, kind, default=None, required=False) -> list:
@@ -143,9 +152,12 @@ def _nonlinear(path: Path, table) -> dict:
     return dict(table)
 
 
-def _vehicles(path: Path, table: dict, nonlinear: dict) -> list[dict]:
+def _vehicles(path: Path, table: dict, nonlinear: dict, space: Optional[Space] = None
+              ) -> tuple[list[dict], list[dict]]:
     """A [[vehicle]] table: its file as text (none: the default car) and each combination of
-    its factor lists; ``nonlinear``: the campaign's [nonlinear] keys, on each."""
+    its factor lists, or with a ``[space]`` each sampled car; ``nonlinear``: the campaign's
+    [nonlinear] keys, on each. Returns (cars, infeasible): a listed variant the bench cannot
+    simulate is an error now, a sampled one is recorded with the reason."""
     from hil.config import load_vehicle
 
     if not isinstance(table, dict):
@@ -160,6 +172,11 @@ def _vehicles(path: Path, table: dict, nonlinear: dict) -> list[dict]:
         if key != "file" and key not in VEHICLE_KEYS:
             raise ConfigError(f"{path}: vehicle key '{key}': file or one of "
                               f"{', '.join(VEHICLE_KEYS)}")
+    if space is not None:
+        if set(table) - {"file"}:
+            raise ConfigError(f"{path}: [[vehicle]] {name}: factor lists and a [space] (one "
+                              "or the other)")
+        return _sampled(path, {"name": name, "toml": text, "factors": {}}, nonlinear, space)
     axes = []
     for key in VEHICLE_KEYS:
         if key in table:
@@ -179,11 +196,36 @@ def _vehicles(path: Path, table: dict, nonlinear: dict) -> list[dict]:
 
             check_plausible(vehicle_config(spec, 1.0), f"{path}: vehicle {label(spec)}")
         out.append(spec)
-    return out
+    return out, []
+
+
+def _sampled(path: Path, base: dict, nonlinear: dict, space: Space
+             ) -> tuple[list[dict], list[dict]]:
+    """The space's cars around ``base``: each checked as a listed variant is; one the bench
+    cannot simulate or calibrate is recorded with the reason, not run."""
+    from calib.model import check_plausible
+
+    if nonlinear:
+        base = {**base, "nonlinear": nonlinear}
+    cfg = vehicle_config(base, 1.0)
+    values = {k: getattr(getattr(cfg, table), k) for k, table in SPACE_KEYS.items()}
+    cars, infeasible = [], []
+    for i, f in enumerate(space_factors(space, values)):
+        spec = {**base, "factors": {k: v for k, v in f.items() if v != 1.0}, "sample": i + 1}
+        if space.calibration == "nominal":
+            spec["calibration"] = "nominal"
+        try:
+            check_plausible(vehicle_config(spec, 1.0), f"car {i + 1}")
+        except ConfigError as exc:
+            infeasible.append({"vehicle": spec, "reason": str(exc)})
+            continue
+        cars.append(spec)
+    return cars, infeasible
 
 
 def label(spec: dict) -> str:
-    return spec["name"] + "".join(f" {k}x{v:g}" for k, v in sorted(spec["factors"].items()))
+    car = f" car {spec['sample']}" if "sample" in spec else ""
+    return spec["name"] + car + "".join(f" {k}x{v:g}" for k, v in sorted(spec["factors"].items()))
 
 
 def case_id(case: dict) -> str:
@@ -198,8 +240,13 @@ def vehicle_config(spec: dict, noise: float, where: str = ""):
     from calib.vehicle import parse_vehicle
     base = default_vehicle()
     data = tomllib.loads(spec["toml"] or DEFAULT_VEHICLE_FILE.read_text())
+    plain = None
     for key, factor in spec["factors"].items():
-        data["vehicle"][key] = data["vehicle"][key] * factor
+        table = SPACE_KEYS.get(key, "vehicle")
+        if key not in data.get(table, {}):        # (a key the file leaves to the default car)
+            plain = plain or vehicle_config({**spec, "factors": {}}, 1.0, where)
+            data.setdefault(table, {})[key] = getattr(getattr(plain, table), key)
+        data[table][key] = data[table][key] * factor
     if spec.get("nonlinear"):
         data["nonlinear"] = {**data.get("nonlinear", {}), **spec["nonlinear"]}
     cfg = parse_vehicle(data, Path(f"{where}<{label(spec)}>"), None if not spec["toml"] else base)

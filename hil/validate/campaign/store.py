@@ -28,6 +28,9 @@ CREATE TABLE IF NOT EXISTS segments (
     metrics TEXT NOT NULL,         -- the segment's whole hil sim JSON
     PRIMARY KEY (case_id, idx)
 );
+CREATE TABLE IF NOT EXISTS infeasible (   -- sampled cars not run ([space]), with the reason
+    vehicle TEXT PRIMARY KEY, campaign TEXT NOT NULL, reason TEXT NOT NULL, spec TEXT NOT NULL
+);
 """
 
 
