@@ -1,5 +1,5 @@
 """The compiled SIL loop (hil/kernels/silloop.py through hil/nodes/fastsil.py) against the nodes of
-hil/nodes.py frame by frame (``sil.run(compiled=False)``): the same report, trace, frames on
+hil/nodes/ frame by frame (``sil.run(compiled=False)``): the same report, trace, frames on
 the bus (every byte, in order) and node state afterwards; no allocation per tick."""
 
 import hashlib

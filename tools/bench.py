@@ -193,7 +193,8 @@ STAGES = (
     ("plant", ("hil/sim/plant.py", "hil/kernels/plant.py")),
     ("sensors", ("hil/sim/sensors.py", "hil/kernels/sensors.py")),
     ("secoc", ("hil/transport/secoc.py",)),
-    ("nodes", ("hil/nodes.py",)),
+    ("nodes", ("hil/nodes/base.py", "hil/nodes/plant.py", "hil/nodes/ecu.py",
+               "hil/nodes/app.py", "hil/nodes/inprocess.py")),   # (not sil, fastsil)
 )
 
 
