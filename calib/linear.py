@@ -21,7 +21,8 @@ import numpy as np
 from scipy.linalg import solve_continuous_are
 from scipy.optimize import minimize
 
-from calib.model import LinearModel, output_covariance, passive_rms, state_covariance
+from calib.model import (LinearModel, output_covariance, passive_rms, state_covariance,
+                         window_scatter)
 
 # Regularisers in scaled units (every passive variance is 1): a tiny weight on the force and on
 # every state keeps the Riccati equation well posed at the corners of the weight space (e.g. no
@@ -225,6 +226,36 @@ def physical_limits(model: LinearModel) -> dict[str, LimitResult]:
     eq43 = result(val, q, K, var)
     return {"comfort": comfort, "safety": safety, "balanced": balanced, "eq43": eq43}
 
+
+
+def constrained_limits(model: LinearModel, window_s: float, z: float = 3.0, steps: int = 8,
+                       tol: float = 5e-4) -> dict[str, LimitResult]:
+    """The comfort and safety limits under the per-drive bound: the best any causal
+    controller (full state, as ``physical_limits``) reaches while each bounded ratio, measured
+    over one drive of ``window_s`` seconds against the passive twin, stays at most 1 with ``z``
+    sigma confidence: ratio_i <= exp(-z sigma_i(K)), sigma at the limit's own gain
+    (``calib.model.window_scatter``). Comfort: min BA with SWS and DTD so bounded; safety:
+    min DTD with BA and SWS. A fixed point: the bounds start at 1 and are set from the last
+    gain's sigma until they move less than ``tol`` (sigma hardly moves with the bound)."""
+    norm = Normalised.of(model)
+    out = {}
+    for name, objective in (("comfort", 0), ("safety", 2)):
+        others = [i for i in range(3) if i != objective]
+        bounds = np.ones(2)
+        for _ in range(steps):
+            g, w, K, var = _dual_max(norm, objective, (float(bounds[0]), float(bounds[1])))
+            gain = norm.physical_gain(K)
+            _, sigma = window_scatter(model, gain, window_s)
+            target = np.minimum(1.0, np.exp(-z * sigma[others]))
+            done = bool(np.all(np.abs(target - bounds) <= tol))
+            bounds = target
+            if done:
+                break
+        else:
+            raise ValueError(f"constrained {name} limit: no fixed point of its bounds within "
+                             f"{tol} after {steps} steps")
+        out[name] = LimitResult(math.sqrt(g), w, gain, np.sqrt(var))
+    return out
 
 # -- designs for the ECU: blind to the unobservable common mode -----------------------------
 

@@ -363,3 +363,33 @@ def test_cli_scatter_says_how_long_a_drive_must_be():
     assert s60["p_over_1"]["ba"] > 10 * s180["p_over_1"]["ba"]
     assert s180["drive_for_3_sigma_s"]["ba"] == pytest.approx(window, rel=0.05)
     assert s180["drive_for_3_sigma_s"]["ba"] == pytest.approx(s60["drive_for_3_sigma_s"]["ba"])
+
+
+@pytest.mark.parametrize("damping", [1.0, 0.7])
+def test_the_limits_under_the_per_drive_bound_hold_it_and_reach_the_plain_ones_with_no_scatter(
+        damping):
+    """calib.linear.constrained_limits (issue 39 (a)): comfort and safety limits whose bounded
+    ratios stay at most exp(-3 sigma) at their own gain over a 177 s drive (the acceptance
+    route's scored window): never better than the plain limits, the bounds hold at the gain,
+    and with no scatter (z = 0, or an endless drive) they are the plain limits."""
+    import dataclasses
+
+    from calib.linear import constrained_limits, physical_limits
+    from calib.model import linear_model, window_scatter
+
+    vp = dataclasses.replace(CFG.vehicle, damping_n_s_per_m=CFG.vehicle.damping_n_s_per_m
+                             * damping)
+    model = linear_model(vp, 64e-6, 20.0)
+    plain = physical_limits(model)
+    bounded = constrained_limits(model, 177.0)
+    for name, objective in (("comfort", 0), ("safety", 2)):
+        others = [i for i in range(3) if i != objective]
+        r = bounded[name]
+        assert r.value >= plain[name].value - 1e-9
+        assert r.value == pytest.approx(r.ratios[objective])
+        _, sigma = window_scatter(model, r.K, 177.0)
+        assert np.all(r.ratios[others] <= np.exp(-3.0 * sigma[others]) + 2e-3), name
+        assert r.value > plain[name].value + 0.005          # the bound binds on this road
+        for free in (constrained_limits(model, 177.0, z=0.0)[name],
+                     constrained_limits(model, 1e9)[name]):
+            assert free.value == pytest.approx(plain[name].value, abs=1e-3)
