@@ -171,17 +171,19 @@ def weights_from_log(z: np.ndarray) -> np.ndarray:
     return np.array([1.0, 10.0 ** z[0], 10.0 ** z[1]])
 
 
-def _eq43_min(norm: Normalised) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum of Eq. (43) under (44) (each ratio <= 1) over the Pareto frontier, which LQR
-    weights trace. The objective (a sum of square roots) is not convex: grid, then local
-    refinement."""
+def _eq43_min(norm: Normalised, bounds: np.ndarray | None = None
+              ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Minimum of Eq. (43) under (44) (each ratio <= 1, or <= ``bounds``) over the Pareto
+    frontier, which LQR weights trace. The objective (a sum of square roots) is not convex:
+    grid, then local refinement."""
+    bounds = np.ones(3) if bounds is None else np.asarray(bounds, dtype=float)
 
     def f(z: np.ndarray, penalty: bool = True) -> float:
         _, var = norm.lqr(weights_from_log(z))
         ratios = np.sqrt(var)
         if penalty:
-            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - 1.0, 0.0)))
-        return math.inf if np.any(ratios > 1.0) else float(np.sum(ratios))
+            return float(np.sum(ratios) + 100.0 * np.sum(np.maximum(ratios - bounds, 0.0)))
+        return math.inf if np.any(ratios > bounds) else float(np.sum(ratios))
 
     grid = np.linspace(-3.0, 5.0, 21)
     scores = sorted((f(np.array([a, b])), a, b) for a in grid for b in grid)
@@ -230,23 +232,28 @@ def physical_limits(model: LinearModel) -> dict[str, LimitResult]:
 
 def constrained_limits(model: LinearModel, window_s: float, z: float = 3.0, steps: int = 8,
                        tol: float = 5e-4) -> dict[str, LimitResult]:
-    """The comfort and safety limits under the per-drive bound: the best any causal
+    """The comfort, safety and Eq. (43) limits under the per-drive bound: the best any causal
     controller (full state, as ``physical_limits``) reaches while each bounded ratio, measured
     over one drive of ``window_s`` seconds against the passive twin, stays at most 1 with ``z``
     sigma confidence: ratio_i <= exp(-z sigma_i(K)), sigma at the limit's own gain
     (``calib.model.window_scatter``). Comfort: min BA with SWS and DTD so bounded; safety:
-    min DTD with BA and SWS. A fixed point: the bounds start at 1 and are set from the last
-    gain's sigma until they move less than ``tol`` (sigma hardly moves with the bound)."""
+    min DTD with BA and SWS; eq43: min the sum with all three (Eq. (44) under the bound). A
+    fixed point: the bounds start at 1 and are set from the last gain's sigma until they move
+    less than ``tol`` (sigma hardly moves with the bound)."""
     norm = Normalised.of(model)
     out = {}
-    for name, objective in (("comfort", 0), ("safety", 2)):
-        others = [i for i in range(3) if i != objective]
-        bounds = np.ones(2)
+    for name, bounded in (("comfort", [1, 2]), ("safety", [0, 1]), ("eq43", [0, 1, 2])):
+        bounds = np.ones(len(bounded))
         for _ in range(steps):
-            g, w, K, var = _dual_max(norm, objective, (float(bounds[0]), float(bounds[1])))
+            if name == "eq43":
+                value, w, K, var = _eq43_min(norm, bounds)
+            else:
+                g, w, K, var = _dual_max(norm, 0 if name == "comfort" else 2,
+                                         (float(bounds[0]), float(bounds[1])))
+                value = math.sqrt(g)
             gain = norm.physical_gain(K)
             _, sigma = window_scatter(model, gain, window_s)
-            target = np.minimum(1.0, np.exp(-z * sigma[others]))
+            target = np.minimum(1.0, np.exp(-z * sigma[bounded]))
             done = bool(np.all(np.abs(target - bounds) <= tol))
             bounds = target
             if done:
@@ -254,7 +261,7 @@ def constrained_limits(model: LinearModel, window_s: float, z: float = 3.0, step
         else:
             raise ValueError(f"constrained {name} limit: no fixed point of its bounds within "
                              f"{tol} after {steps} steps")
-        out[name] = LimitResult(math.sqrt(g), w, gain, np.sqrt(var))
+        out[name] = LimitResult(value, w, gain, np.sqrt(var))
     return out
 
 # -- designs for the ECU: blind to the unobservable common mode -----------------------------
