@@ -34,12 +34,11 @@ def confirm_by_simulation(cfg: VehicleConfig, K: list, seconds: float, seed: int
 
 
 def write_gains(result: dict, path: Path) -> Path:
+    from hil.cli import write_atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
     keep = {k: v for k, v in result.items() if k not in ("vehicle", "simulation", "gains_file")}
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(keep, indent=2) + "\n")
-    tmp.replace(path)
-    return path
+    return write_atomic(path, json.dumps(keep, indent=2) + "\n")
 
 
 def _render(o: dict) -> None:

@@ -84,6 +84,11 @@ def config_faults(out: Path, names: Optional[list[str]] = None) -> list[Result]:
 
 # -- the outside clients ----------------------------------------------------------------------
 
+# what the outside clients count the plant's ticks by: one of these frames per tick
+_TICK_FRAMES = [{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
+                for n in ("PLANT_SENSORS", "SIM_TICK")]
+
+
 def _attacker(windows: list[Window], spec, marks: dict, stop, on_bus: dict) -> None:
     """The campaign's outside bus client: read-only (no credentials), it counts the plant's
     ticks from the bus and, in its windows, sends a forged ACTUATOR_CMD with every tick
@@ -98,9 +103,7 @@ def _attacker(windows: list[Window], spec, marks: dict, stop, on_bus: dict) -> N
         mine = [w for w in mine if not BY_NAME[w.name].needs_hub]
     if not mine:
         return
-    ticks_ids = [{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
-                 for n in ("PLANT_SENSORS", "SIM_TICK")]
-    bus = spec.open(can_filters=ticks_ids)
+    bus = spec.open(can_filters=_TICK_FRAMES)
     k = -1                  # the plant's tick of the last tick frame seen (the first is tick 0)
     try:
         while not stop.is_set() and mine:
@@ -157,8 +160,7 @@ def _tester(windows: list[Window], spec, out: Path, reads: dict, stop) -> None:
 
     ticks = bus = None
     try:
-        ticks = spec.open(can_filters=[{"can_id": ID[n], "can_mask": 0x7FF, "extended": False}
-                                       for n in ("PLANT_SENSORS", "SIM_TICK")])
+        ticks = spec.open(can_filters=_TICK_FRAMES)
         bus = diag.tester_bus(spec, load_key(out / "hub.secret")
                               if spec.interface == "remote" else None)
         with diag.client(bus, timeout=2.0) as client:
@@ -437,10 +439,11 @@ def main(args) -> int:
                        channel=getattr(args, "channel", None))
     from hil.report import verdict
 
-    doc = verdict.attach({"results": [asdict(r) for r in results]}, checks(results))
+    held = checks(results)
+    doc = verdict.attach({"results": [asdict(r) for r in results]}, held)
     (Path(args.out) / "faults.json").write_text(json.dumps(doc, indent=1) + "\n")
     if getattr(args, "junit", None):
-        verdict.write_junit(args.junit, "hil faults", checks(results), time.monotonic() - t0)
+        verdict.write_junit(args.junit, "hil faults", held, time.monotonic() - t0)
     if args.json:
         print(json.dumps(doc, indent=1))
     else:

@@ -23,11 +23,12 @@ from pathlib import Path
 from typing import Any, Optional
 
 from calib.errors import ConfigError
+from calib.vehicle import VehicleParams
 
+# the keys of a vehicle file's [vehicle] table (a campaign's factors may name them)
+VEHICLE_KEYS = tuple(f.name for f in dataclasses.fields(VehicleParams))
 # the keys a range may name, and the table of the vehicle file each belongs to
-SPACE_KEYS = {"sprung_mass_kg": "vehicle", "unsprung_mass_kg": "vehicle",
-              "spring_stiffness_n_per_m": "vehicle", "damping_n_s_per_m": "vehicle",
-              "tire_stiffness_n_per_m": "vehicle", "torque_constant_nm_per_a": "actuator",
+SPACE_KEYS = {**{k: "vehicle" for k in VEHICLE_KEYS}, "torque_constant_nm_per_a": "actuator",
               "winding_resistance_ohm": "actuator"}
 SAMPLERS = ("lhs", "sobol")
 CALIBRATIONS = ("per-car", "nominal")

@@ -13,12 +13,9 @@ from pathlib import Path
 from typing import Optional
 
 from calib.errors import ConfigError
-from hil.validate.campaign.space import SPACE_KEYS, Space
+from hil.validate.campaign.space import SPACE_KEYS, VEHICLE_KEYS, Space
 from hil.validate.campaign.space import factors as space_factors
 from hil.validate.campaign.space import parse as parse_space
-
-VEHICLE_KEYS = ("sprung_mass_kg", "unsprung_mass_kg", "spring_stiffness_n_per_m",
-                "damping_n_s_per_m", "tire_stiffness_n_per_m")
 
 
 @dataclasses.dataclass(frozen=True)
