@@ -22,7 +22,7 @@ from scipy.linalg import solve_continuous_are
 from scipy.optimize import minimize
 
 from calib.model import (LinearModel, output_covariance, passive_rms, state_covariance,
-                         window_scatter)
+                         window_covariance, window_scatter)
 
 # Regularisers in scaled units (every passive variance is 1): a tiny weight on the force and on
 # every state keeps the Riccati equation well posed at the corners of the weight space (e.g. no
@@ -323,3 +323,20 @@ def _relative_design(model: LinearModel, objective: int, bounds: tuple[float, fl
     _, w, _, _ = _dual_max(fam.rel, objective, bounds)
     K5, ratios = fam.evaluate(w)
     return LimitResult(float(ratios[objective]), w, K5, ratios)
+
+
+# the value each limit bounds: its ratio's index, or None for Eq. (43)'s sum of the three
+LIMIT_VALUE = {"comfort": 0, "safety": 2, "eq43": None}
+
+
+def drive_scatter(model: LinearModel, name: str, K: np.ndarray, window_s: float) -> float:
+    """The standard deviation of the value the limit ``name`` bounds (comfort: the BA ratio;
+    safety: DTD; eq43: the sum of the three ratios), measured over one drive of ``window_s``
+    seconds under u = -K x against the passive twin (to first order, from
+    ``calib.model.window_covariance``): known before any run, it says how far one drive's
+    ratio, or the mean of n drives' (divided by sqrt n), may fall from the exact value."""
+    ratios, cov = window_covariance(model, K, window_s)
+    i = LIMIT_VALUE[name]
+    if i is not None:
+        return float(ratios[i] * math.sqrt(max(cov[i, i], 0.0)))
+    return float(math.sqrt(max(ratios @ cov @ ratios, 0.0)))

@@ -143,6 +143,34 @@ def window_scatter(model: LinearModel, K: np.ndarray | None, window_s: float
     return ratios, sigma
 
 
+def window_covariance(model: LinearModel, K: np.ndarray | None, window_s: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(ratios, cov): the exact RMS ratios to passive of [BA, SWS, DTD] under u = -K x, and
+    the 3 x 3 covariance of the logs of those ratios measured over one drive of ``window_s``
+    seconds against the passive twin on the same road (its diagonal is ``window_scatter``'s
+    sigma squared, to rounding; the off-diagonal terms give the scatter of a sum of ratios,
+    as Eq. (43)'s).
+
+    For stationary Gaussian outputs x, y with cross-covariance R_xy(tau), the window means of
+    x^2 and y^2 over T have covariance (2/T) int R_xy(tau)^2 dtau over all tau (T much longer
+    than the correlation time). With R_xy(tau) = c_x e^{A tau} S c_y' for tau >= 0 (S the
+    joint stationary covariance), int_0^inf R_xy^2 dtau = c_x X_y c_x' where
+    A X_y + X_y A' = -u u', u = S c_y' (one Lyapunov equation per output), and to first
+    order cov(log rms_x, log rms_y) = cov(mean x^2, mean y^2) / (4 E x^2 E y^2)."""
+    if not window_s > 0.0:
+        raise ValueError(f"window must be positive, got {window_s}")
+    A, G, C_active, C_passive = twin_system(model, K)
+    S = state_covariance(A, G)
+    c = np.vstack([C_active, C_passive])               # outputs: 3 active, then 3 passive
+    var = np.einsum("ij,jk,ik->i", c, S, c)
+    X = [solve_continuous_lyapunov(A, -np.outer(S @ ci, S @ ci)) for ci in c]
+    later = np.array([[float(c[i] @ X[j] @ c[i]) for j in range(6)] for i in range(6)])
+    mean_cov = 2.0 * (later + later.T) / window_s       # cov of the window means of y^2
+    log_cov = 0.25 * mean_cov / np.outer(var, var)      # cov of the logs of the RMS values
+    D = np.hstack([np.eye(3), -np.eye(3)])              # log ratio = log rms_a - log rms_p
+    return np.sqrt(var[:3] / var[3:]), D @ log_cov @ D.T
+
+
 def window_bound(model: LinearModel, K: np.ndarray | None, opts: DesignOptions) -> np.ndarray:
     """exp(-z sigma) for [BA, SWS, DTD]: the exact ratio at most this keeps a ratio measured
     over a drive of ``opts.ratio_window_s`` at most 1 with ``opts.ratio_window_z`` sigma

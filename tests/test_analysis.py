@@ -287,6 +287,21 @@ def test_window_scatter_matches_many_simulated_drives():
     assert sigma[1] > sigma[0] > sigma[2]
     _, longer = window_scatter(model, K, 4 * window)
     assert np.allclose(longer, sigma / 2)
+    # the whole covariance (calib.model.window_covariance): its diagonal is sigma squared,
+    # and the scatter of Eq. (43)'s sum of ratios (calib.linear.drive_scatter) matches the
+    # same drives' within 15 %
+    from calib.linear import drive_scatter
+    from calib.model import window_covariance
+
+    r_cov, cov = window_covariance(model, K, window)
+    assert np.allclose(r_cov, ratios, rtol=1e-12) and np.allclose(np.diag(cov), sigma ** 2,
+                                                                 rtol=1e-9)
+    total = np.exp(log_r).sum(axis=0)
+    got = float(np.std(total, ddof=1))
+    assert got == pytest.approx(drive_scatter(model, "eq43", K, window), rel=0.15)
+    assert drive_scatter(model, "eq43", K, window) < sum(ratios * sigma)   # (correlated < 1)
+    got = float(np.std(np.exp(log_r[2]), ddof=1))
+    assert got == pytest.approx(drive_scatter(model, "safety", K, window), rel=0.15)
 
 
 def test_the_safety_design_keeps_ba_within_its_window_scatter():

@@ -117,7 +117,8 @@ def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
     failed = [c["name"] for c in report["checks"] if not c["ok"]]
     segments = []
     for i, (seg, rs) in enumerate(zip(report["segments"], route.segments)):
-        row = judge_segment(cfg, route, rs, seg, case["mode"], acceptance)
+        row = judge_segment(cfg, route, rs, seg, case["mode"], acceptance,
+                            scored_window(route, i, case["duration_s"]))
         row["idx"] = i
         if not row["ok"]:
             failed.append(f"segment {i + 1} ({seg['grade']}@{seg['speed_mps']:g}): "
@@ -142,25 +143,32 @@ def calibration_car(spec: dict, cfg):
     return vehicle_config({**base, "factors": {}}, 1.0)
 
 
-def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) -> dict:
+def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
+                  window_s: float) -> dict:
     """A segment against the acceptance of the mode it was driven in, and its gap to the
-    vehicle's own limit for that mode (``calib.linear.physical_limits``: no controller can go
-    below it). The gap is judged on the mean over the seeds, in ``report``: one segment's
-    ratio scatters around the mean by more than the 0.03 a design is held to."""
+    vehicle's own limit for that mode under the per-drive bound (``calib.linear.
+    constrained_limits`` over the segment's scored ``window_s``: the best any causal
+    controller reaches while each bounded ratio stays at most 1 on such a drive with 3 sigma
+    confidence), the gap to the unbounded limit (``physical_limits``) beside it, and the
+    scatter of one drive's value (``calib.linear.drive_scatter`` at the bounded limit's
+    gain). The gap is judged on the mean over the seeds, in ``report``: one segment's ratio
+    scatters around the mean by more than the gap a design is held to."""
     driven = driven_mode(seg, mode)
     row = {"grade": seg["grade"], "speed_mps": seg["speed_mps"], "mode": driven,
            "scored": bool(seg.get("scored", True)), "ratio": seg.get("ratio", {}),
-           "limit_name": None, "limit_value": None, "gap": None, "ok": True, "why": "",
-           "metrics": seg}
+           "limit_name": None, "limit_value": None, "gap": None, "limit_free": None,
+           "gap_free": None, "sigma": None, "ok": True, "why": "", "metrics": seg}
     if not row["scored"] or driven not in ("comfort", "safety", "comprehensive"):
         return row
-    limits = _limits(cfg.vehicle, rs, route)
+    limits = _limits(cfg.vehicle, rs, route, window_s)
     r = seg["ratio"]
     name, value = {"comfort": ("comfort_ba", r["ba"]), "safety": ("safety_dtd", r["dtd"]),
                    "comprehensive": ("eq43_sum", sum(r.values()))}[driven]
-    limit = limits[{"comfort": "comfort", "safety": "safety",
-                    "comprehensive": "eq43"}[driven]]
-    row.update(limit_name=name, limit_value=limit, gap=value - limit)
+    key = LIMIT_OF[driven]
+    limit = limits[key]["bounded"]
+    row.update(limit_name=name, limit_value=limit, gap=value - limit,
+               limit_free=limits[key]["free"], gap_free=value - limits[key]["free"],
+               sigma=limits[key]["sigma"])
     why = []
     if acceptance:
         raised = None
@@ -168,11 +176,26 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str) 
             # the same margin above this vehicle's limit as above the default car's
             from hil.config import default_vehicle
 
-            raised = {RELATIVE_KEY[driven]: limit - _limits(default_vehicle().vehicle, rs,
-                                                            route)[driven]}
+            base = _limits(default_vehicle().vehicle, rs, route, window_s)
+            raised = {RELATIVE_KEY[driven]: limit - base[key]["bounded"]}
         why = violations(driven, r, limit, raised)
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
+
+
+LIMIT_OF = {"comfort": "comfort", "safety": "safety", "comprehensive": "eq43"}
+
+
+def scored_window(route, i: int, duration_s) -> float:
+    """The seconds of segment ``i`` a run scores: what it drove of the segment (all of it, or
+    up to the case's ``duration_s``) after the settling window (``hil.nodes.sil``)."""
+    from hil.nodes.sil import SETTLE_S
+
+    start = sum(s.duration_s() for s in route.segments[:i])
+    driven = route.segments[i].duration_s()
+    if duration_s is not None:
+        driven = min(driven, max(0.0, duration_s - start))
+    return driven - SETTLE_S
 
 
 def driven_mode(seg: dict, mode: str) -> str:
@@ -190,26 +213,40 @@ def driven_mode(seg: dict, mode: str) -> str:
     return top if share >= DRIVEN_SHARE else MIXED
 
 
-def _limits(vehicle, rs, route) -> dict:
-    """The limits (``calib.linear.physical_limits``) of a vehicle on a route segment's road."""
-    return _limit_values(vehicle, rs.gq_m3, rs.speed_mps, route.road.convention,
-                         route.road.cutoff_n_per_m)
+# the road a limit is computed on: any (the limits and the scatter are ratios to the passive
+# car on the same road, independent of the road's roughness in a linear model); one fixed
+# value, so a limit's bits do not depend on which segment asked first
+_LIMIT_GQ_M3 = 64e-6
+
+
+def _limits(vehicle, rs, route, window_s: float) -> dict:
+    """The limits of a vehicle at a route segment's speed, each as {"free": the unbounded
+    limit, "bounded": under the per-drive bound over ``window_s``, "sigma": one drive's
+    scatter of the bounded value}."""
+    return _limit_values(vehicle, rs.speed_mps, route.road.convention,
+                         route.road.cutoff_n_per_m, round(window_s, 6))
 
 
 @functools.lru_cache(maxsize=64)
-def _limit_values(vehicle, gq: float, speed: float, convention: str, cutoff: float) -> dict:
+def _limit_values(vehicle, speed: float, convention: str, cutoff: float, window_s: float
+                  ) -> dict:
     """The limits' values, kept in the design cache (``calib.cache``: keyed by the vehicle,
-    the road and the design code; shared by a campaign's workers, which would otherwise each
-    solve them for every vehicle: a second or two of Riccati solves per segment, more than a
-    case's drive)."""
+    the speed, the window and the design code; shared by a campaign's workers, which would
+    otherwise each solve them for every vehicle: a few seconds of Riccati solves per speed,
+    more than a case's drive)."""
     import pickle
 
     from calib import cache
-    from calib.linear import physical_limits
+    from calib.linear import constrained_limits, drive_scatter, physical_limits
     from calib.model import linear_model
 
     def compute() -> dict:
-        res = physical_limits(linear_model(vehicle, gq, speed, convention, cutoff))
-        return {name: r.value for name, r in res.items()}
-    parts = (pickle.dumps(vehicle, protocol=5), repr((gq, speed, convention, cutoff)).encode())
+        model = linear_model(vehicle, _LIMIT_GQ_M3, speed, convention, cutoff)
+        free = physical_limits(model)
+        bounded = constrained_limits(model, window_s)
+        return {name: {"free": free[name].value, "bounded": res.value,
+                       "sigma": drive_scatter(model, name, res.K, window_s)}
+                for name, res in bounded.items()}
+    parts = (pickle.dumps(vehicle, protocol=5),
+             repr((speed, convention, cutoff, window_s)).encode())
     return cache.cached("limits", parts, compute)

@@ -6,6 +6,8 @@ import json
 import math
 import sqlite3
 from pathlib import Path
+
+from calib.errors import ConfigError
 from hil.validate.campaign.case import command
 
 
@@ -24,7 +26,11 @@ CREATE TABLE IF NOT EXISTS segments (
     case_id TEXT NOT NULL REFERENCES cases(case_id), idx INTEGER NOT NULL,
     grade TEXT NOT NULL, speed_mps REAL NOT NULL, mode TEXT NOT NULL, scored INTEGER NOT NULL,
     ba_ratio REAL, sws_ratio REAL, dtd_ratio REAL,
-    limit_name TEXT, limit_value REAL, gap REAL, ok INTEGER NOT NULL,
+    limit_name TEXT,
+    limit_value REAL, gap REAL,    -- the limit under the per-drive bound, the value's gap to it
+    limit_free REAL, gap_free REAL,    -- the unbounded limit (physical_limits), the gap to it
+    sigma REAL,                    -- one drive's scatter of the value (calib.linear.drive_scatter)
+    ok INTEGER NOT NULL,
     metrics TEXT NOT NULL,         -- the segment's whole hil sim JSON
     PRIMARY KEY (case_id, idx)
 );
@@ -38,6 +44,11 @@ def open_db(path: Path) -> sqlite3.Connection:
     path.parent.mkdir(parents=True, exist_ok=True)
     db = sqlite3.connect(str(path))
     db.executescript(SCHEMA)
+    columns = {r[1] for r in db.execute("PRAGMA table_info(segments)")}
+    if "sigma" not in columns:
+        db.close()
+        raise ConfigError(f"{path}: a campaign database of an older layout (no bounded "
+                          "limits); run the campaign into a new --out")
     return db
 
 
@@ -58,10 +69,11 @@ def store(db: sqlite3.Connection, campaign: str, res: dict, db_path: str = "DB")
                     command(c, db_path), json.dumps(c, sort_keys=True)))
         for s in res["segments"]:
             r = s["ratio"]
-            db.execute("INSERT OR IGNORE INTO segments VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+            db.execute("INSERT OR IGNORE INTO segments VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                        (res["case_id"], s["idx"], s["grade"], s["speed_mps"], s["mode"],
                         int(s["scored"]), r.get("ba"), r.get("sws"), r.get("dtd"),
-                        s["limit_name"], s["limit_value"], s["gap"], int(s["ok"]),
+                        s["limit_name"], s["limit_value"], s["gap"], s["limit_free"],
+                        s["gap_free"], s["sigma"], int(s["ok"]),
                         json.dumps(finite(s["metrics"]), sort_keys=True)))
 
 
