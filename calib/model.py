@@ -231,8 +231,9 @@ MAX_FORCE_N = 32767          # the actuator's peak force: within FORCE_CMD's ran
 def check_plausible(cfg: VehicleConfig, path) -> None:
     """Refuse, with the reason, a vehicle the bench cannot simulate or calibrate honestly:
     a passive mode too fast for the plant step (a feather-light mass, a rigid spring), a
-    spring or tyre that sags more than ``MAX_STATIC_DEFLECTION_M`` under the static load, or
-    an actuator whose peak force (force constant x current limit) leaves FORCE_CMD's int16
+    spring or tyre that sags more than ``MAX_STATIC_DEFLECTION_M`` under the static load, a
+    static deflection from the ride height (a payload) that leaves no stroke to a stop, or an
+    actuator whose peak force (force constant x current limit) leaves FORCE_CMD's int16
     range and the firmware's integer signals (so no overflow is possible downstream)."""
     vp, ap, dt = cfg.vehicle, cfg.actuator, cfg.sim.plant_dt_s
     A4 = mechanics(vp)[0]
@@ -252,6 +253,11 @@ def check_plausible(cfg: VehicleConfig, path) -> None:
         if value > limit:
             raise ConfigError(f"{path}: vehicle.{what} sags {value:.3g} m under the static "
                               f"load (at most {limit:g} m)")
+    nl = cfg.nonlinear
+    if abs(nl.static_deflection_m) >= nl.bump_stop_clearance_m:
+        raise ConfigError(f"{path}: the static deflection ({1e3 * nl.static_deflection_m:+.1f} "
+                          f"mm from the ride height) leaves no stroke to the bump stop "
+                          f"({1e3 * nl.bump_stop_clearance_m:g} mm)")
     peak = ap.force_constant_n_per_a * ap.current_limit_a
     if not peak <= MAX_FORCE_N:
         raise ConfigError(f"{path}: the actuator's peak force (force constant "

@@ -53,7 +53,7 @@ def build_section(cls: type, table: Any, path: Path, name: str, base: Any = None
     for fname, field in fields.items():
         full = f"{name}.{fname}"
         if fname not in table:
-            if required:
+            if required and field.default is dataclasses.MISSING:
                 raise ConfigError(f"{path}: missing key '{full}'")
             if base is not None:
                 values[fname] = getattr(base, fname)
@@ -133,6 +133,21 @@ class NonlinearParams:
     bump_stop_clearance_m: float = _pos()
     bump_stop_stiffness_n_per_m: float = _pos()
     tire_lift_off: bool = dataclasses.field(metadata={"kind": "bool"})
+    # the suspension's static deflection from the ride height it was set up for (m; negative:
+    # compressed, as a payload on a car calibrated empty: -g (m_s / k_s - m_s0 / k_s0)). The
+    # deflection sensor reads it, the bump stops' clearance shifts by it (less stroke in
+    # compression); the linear dynamics are the same about the new equilibrium. A key with a
+    # default: a vehicle file need not name it.
+    static_deflection_m: float = dataclasses.field(default=0.0, metadata={"positive": False})
+
+
+def static_sag_m(car: VehicleParams, design: VehicleParams) -> float:
+    """The static deflection of ``car`` from the ride height of the car it was set up for
+    (``design``): -g (m_s / k_s - m_s0 / k_s0), negative when the body sits lower (a payload,
+    a softer spring). The spring alone carries the body: the unsprung mass and the tyre move
+    the wheel, not the stroke."""
+    return -GRAVITY_MPS2 * (car.sprung_mass_kg / car.spring_stiffness_n_per_m
+                            - design.sprung_mass_kg / design.spring_stiffness_n_per_m)
 
 
 @dataclass(frozen=True)

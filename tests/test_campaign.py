@@ -222,6 +222,23 @@ def test_the_report_names_the_worst_cases_and_the_limits(tmp_path):
                                  else rep["verdict"])
 
 
+def test_the_shipped_vehicle_space_campaigns_load():
+    """campaigns/load_and_wear.toml: the nominal calibration over 128 sampled cars of each
+    base car (default, SUV), 3 seeds, no max_gap; campaigns/design_space.toml: 128 cars of
+    their own designs over +-35 % of the five [vehicle] keys, 3 seeds, max_gap 0.02. Every
+    sampled car is feasible (none hidden among the infeasible)."""
+    wear = cp.load(ROOT / "campaigns" / "load_and_wear.toml")
+    assert len(wear.cases) == 2 * 128 * 3 and not wear.infeasible and wear.max_gap is None
+    assert {c["vehicle"]["calibration"] for c in wear.cases} == {"nominal"}
+    assert {c["vehicle"]["name"] for c in wear.cases} == {"default", "suv"}
+    space = cp.load(ROOT / "campaigns" / "design_space.toml")
+    assert len(space.cases) == 128 * 3 and not space.infeasible and space.max_gap == 0.02
+    assert not any("calibration" in c["vehicle"] for c in space.cases)
+    f = [c["vehicle"]["factors"] for c in space.cases]
+    assert min(x.get("damping_n_s_per_m", 1.0) for x in f) < 0.66
+    assert max(x.get("sprung_mass_kg", 1.0) for x in f) > 1.34
+
+
 def test_the_shipped_vehicle_family_campaign_loads():
     """campaigns/vehicle_family.toml: both cars, each key of [vehicle] at two factors, ten
     seeds: 22 vehicles x 10 = 220 distinct cases, every variant a plausible vehicle."""
@@ -428,6 +445,18 @@ def test_a_small_space_runs_with_one_nominal_calibration_or_one_per_car(tmp_path
     and the report with their reason."""
     nominal = cp.load(_space(tmp_path, n=3, spring_lo=0.8)).cases
     per_car = cp.load(_space(tmp_path, n=3, calibration="per-car", spring_lo=0.8)).cases
+    # a nominal car sits at its base car's ride height: its payload and spring tolerance sag
+    # it (the deflection sensor reads it, the stops are nearer); a car designed for itself
+    # sits at its own
+    from calib.vehicle import static_sag_m
+    from hil.config import default_vehicle
+
+    for c in nominal + per_car:
+        cfg = cp.vehicle_config(c["vehicle"], 1.0)
+        want = static_sag_m(cfg.vehicle, default_vehicle().vehicle) if c in nominal else 0.0
+        assert cfg.nonlinear.static_deflection_m == pytest.approx(want, abs=1e-15)
+    assert min(cp.vehicle_config(c["vehicle"], 1.0).nonlinear.static_deflection_m
+               for c in nominal) < -0.005
     rows = [cp.run_case(c) for c in nominal]
     assert len({r["calibration_sha256"] for r in rows}) == 1
     assert all(r["segments"] and r["verdict"] in ("pass", "fail") for r in rows)

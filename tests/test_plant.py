@@ -197,3 +197,42 @@ def test_other_vehicle_file_simulates(tmp_path):
     exact = passive_rms(linear_model(cfg.vehicle, 64e-6, 20.0))
     m = trace.metrics(slice(5000, None))
     assert m.ba_rms_mps2 == pytest.approx(exact[0], rel=0.10)
+
+
+def test_a_static_deflection_shifts_the_bump_stops_and_the_deflection_sensor(tmp_path):
+    """A payload on a car set up empty (nonlinear.static_deflection_m, negative: compressed):
+    the same dynamics about the new equilibrium, the deflection sensor reading the offset, and
+    the bump stop that much nearer in compression (farther in rebound); one that leaves no
+    stroke is refused in one line."""
+    from calib.errors import ConfigError
+    from calib.model import check_plausible
+    from calib.vehicle import static_sag_m
+
+    heavy = dataclasses.replace(CFG.vehicle, sprung_mass_kg=CFG.vehicle.sprung_mass_kg * 1.3)
+    sag = static_sag_m(heavy, CFG.vehicle)
+    assert sag == pytest.approx(-0.3 * 320.0 * 9.80665 / 20000.0)      # -47 mm
+    stops = dataclasses.replace(CFG.nonlinear, bump_stops=True)
+    route = constant_route("D", 20.0, 10.0)
+    plain = drive(dataclasses.replace(CFG, nonlinear=stops), route, seed=3)
+    sagged = drive(dataclasses.replace(CFG, nonlinear=dataclasses.replace(
+        stops, static_deflection_m=sag)), route, seed=3)
+    clear = stops.bump_stop_clearance_m
+    # the stroke left in compression, not the clearance, is what the wheel can use
+    assert plain.sws_m.min() > -clear and plain.metrics().bump_stop_contacts == 0
+    assert sagged.sws_m.min() < -(clear + sag)
+    assert sagged.metrics().bump_stop_contacts > 0
+    first = int(np.argmax(sagged.bump_contact))
+    assert np.array_equal(plain.sws_m[:first], sagged.sws_m[:first])   # (the same until then)
+    plant = QuarterCarPlant(dataclasses.replace(CFG, nonlinear=dataclasses.replace(
+        stops, static_deflection_m=sag)))
+    assert plant.sensed()[2] == sag                     # at rest: the sensor reads the sag
+    with pytest.raises(ConfigError, match="leaves no stroke to the bump stop"):
+        check_plausible(dataclasses.replace(CFG, nonlinear=dataclasses.replace(
+            stops, static_deflection_m=-clear)), "car")
+    # a vehicle file need not name the key (a default), and may
+    f = tmp_path / "v.toml"
+    f.write_text("[vehicle]\nsprung_mass_kg = 320.0\nunsprung_mass_kg = 40.0\n"
+                 "spring_stiffness_n_per_m = 20000.0\ndamping_n_s_per_m = 1000.0\n"
+                 "tire_stiffness_n_per_m = 200000.0\n[nonlinear]\nstatic_deflection_m = -0.02\n")
+    assert load_vehicle(f).nonlinear.static_deflection_m == -0.02
+    assert CFG.nonlinear.static_deflection_m == 0.0

@@ -56,6 +56,11 @@ def test_each_check_fails_on_its_fault(clean):
     assert _failed(_again(clean, bus_frames=frames)) == {"bus.PLANT_SENSORS"}
     # a fail-safe tick, a frame fault, a fallback tick: none allowed without injected faults
     assert _failed(_again(clean, fault_ticks=1)) == {"failsafe_ticks"}
+    # a DTC confirmed in a drive without a fault: a false alarm that names a good part
+    assert clean["dtcs_confirmed"] == []
+    dtc = copy.deepcopy(clean)
+    dtc["dtcs_confirmed"] = ["susp_defl_plausibility"]
+    assert _failed(_again(dtc)) == {"dtcs_confirmed"}
     bad = copy.deepcopy(clean)
     bad["frame_faults"] = {"PLANT_SENSORS:checksum": 1}
     bad["plant_fallback_ticks"] = 2

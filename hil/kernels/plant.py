@@ -22,8 +22,8 @@ ACC = ("road_in_j", "nonlinear_work_j", "supply_drawn_j", "stored_j", "copper_lo
  A_MECH, A_IND) = range(len(ACC))
 
 
-P_MS, P_MT, P_KS, P_CS, P_KT, P_K, P_B, P_ETA, P_CLEAR, P_KB, P_LOAD, P_BUMP, P_LIFT, P_IMAX = \
-    range(14)
+(P_MS, P_MT, P_KS, P_CS, P_KT, P_K, P_B, P_ETA, P_CLEAR, P_KB, P_LOAD, P_BUMP, P_LIFT, P_IMAX,
+ P_SAG) = range(15)
 
 
 @njit
@@ -33,7 +33,7 @@ def nonlinear(x, zf, pp):
     contact = lifted = False
     zs, zt = x[2], x[3]
     if pp[P_BUMP] != 0.0:
-        d = zs - zt
+        d = zs - zt + pp[P_SAG]             # (from the ride height: the static sag too)
         over = abs(d) - pp[P_CLEAR]
         if over > 0.0:
             f = -pp[P_KB] * over * math.copysign(1.0, d)
@@ -69,7 +69,7 @@ def accelerations(x, zf, pp, has_actuator):
 @njit
 def sensed(x, zf, pp, has_actuator):
     ba, wa = accelerations(x, zf, pp, has_actuator)
-    return ba, wa, x[2] - x[3], x[4]
+    return ba, wa, x[2] - x[3] + pp[P_SAG], x[4]
 
 
 # what observe_into writes, per row

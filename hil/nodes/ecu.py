@@ -13,7 +13,7 @@ import numpy as np
 from calib.fx_tables import build_tables
 from firmware import safety
 from firmware import params as fp
-from firmware.diag import uds
+from firmware.diag import dtc, uds
 from firmware.ecu import Ecu
 from firmware.layout import view
 from hil.kernels import bus as kb
@@ -285,7 +285,13 @@ class EcuNode:
                 "arithmetic": self.state.arithmetic,
                 "uds_requests": self.uds.requests if self.uds else 0,
                 "isotp_errors": self.uds.errors if self.uds else 0, "ecu_resets": self.resets,
-                "fx_gain_saturations": self.state.gain_saturations}
+                "fx_gain_saturations": self.state.gain_saturations,
+                "dtcs_confirmed": self.confirmed_dtcs()}
+
+    def confirmed_dtcs(self) -> list[str]:
+        """The DTCs whose confirmedDTC bit is set in the ECU's memory now, by name."""
+        status = self.state.S[0]["dtc"]["status"]
+        return [d.name for i, d in enumerate(dtc.DTCS) if status[i] & dtc.CDTC]
 
     def trace(self) -> dict:
         self.record()

@@ -184,6 +184,7 @@ def build_report(cfg, route, mode, controller, seed, trace: SilTrace, plant: dic
     report["frame_faults"] = ecu["frame_faults"]
     report["ecu_arithmetic"] = ecu.get("arithmetic", "float")
     report["fx_gain_saturations"] = ecu.get("fx_gain_saturations", 0)
+    report["dtcs_confirmed"] = ecu.get("dtcs_confirmed", [])
     report["plant_fallback_ticks"] = plant["fallback_ticks"]
     report["plant_missed_cmds"] = plant["missed_cmds"]
     report["plant_bad_cmd_frames"] = plant["bad_cmd_frames"]

@@ -114,6 +114,8 @@ def run_checks(report: dict, *, expected_ticks: int, dt_s: float, ticks: dict[st
         if pace == "lockstep":
             out += [check("frame_faults", frame_faults, "==", 0),
                     check("failsafe_ticks", fault_ticks, "==", 0),
+                    # a fault-free drive confirms no DTC (a false alarm names a good part)
+                    check("dtcs_confirmed", len(report.get("dtcs_confirmed", [])), "==", 0),
                     check("plant_fallback_ticks", report["plant_fallback_ticks"], "==", 0),
                     check("plant_missed_cmds", report["plant_missed_cmds"], "==", 0),
                     check("plant_bad_cmd_frames", report["plant_bad_cmd_frames"], "==", 0),

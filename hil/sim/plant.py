@@ -181,7 +181,8 @@ class QuarterCarPlant:
         # the kernels' parameters, in the order of the P_* indices
         self._pp = np.array([self._ms, self._mt, self._ks, self._cs, self._kt, self._K, self._b,
                              self._eta, self._clear, self._kb, self._tyre_load,
-                             float(self._bump), float(self._lift), self._imax])
+                             float(self._bump), float(self._lift), self._imax,
+                             nl.static_deflection_m])
 
     # -- model -----------------------------------------------------------------------------
     def _matrix(self, enabled: bool, motoring: bool) -> np.ndarray:

@@ -115,6 +115,9 @@ def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
                         duration_s=case["duration_s"], fixed_point=case["fixed_point"],
                         key=CASE_KEY)
     failed = [c["name"] for c in report["checks"] if not c["ok"]]
+    if report.get("dtcs_confirmed"):      # (which: a false DTC names a part)
+        failed = [f"dtcs_confirmed ({', '.join(report['dtcs_confirmed'])})"
+                  if f == "dtcs_confirmed" else f for f in failed]
     segments = []
     for i, (seg, rs) in enumerate(zip(report["segments"], route.segments)):
         row = judge_segment(cfg, route, rs, seg, case["mode"], acceptance,

@@ -231,7 +231,10 @@ def case_id(case: dict) -> str:
 
 def vehicle_config(spec: dict, noise: float, where: str = ""):
     """The case's vehicle: its file (or the default car), the factors on [vehicle], the
-    campaign's [nonlinear] keys, the noise factor on every sensor."""
+    campaign's [nonlinear] keys, the noise factor on every sensor. A car of a space's
+    ``nominal`` calibration sits at the ride height of its base car's set-up: a heavier body
+    or a softer spring sags (``calib.vehicle.static_sag_m``), which its deflection sensor
+    reads and its bump stops feel; a car calibrated for itself has none."""
     from hil.config import DEFAULT_VEHICLE_FILE, default_vehicle
 
     from calib.vehicle import parse_vehicle
@@ -253,6 +256,14 @@ def vehicle_config(spec: dict, noise: float, where: str = ""):
                                                * noise)
                    for f in dataclasses.fields(cfg.sensors)}
         cfg = dataclasses.replace(cfg, sensors=type(cfg.sensors)(**sensors))
+    if spec.get("calibration") == "nominal" and spec["factors"]:
+        from calib.vehicle import static_sag_m
+
+        design = vehicle_config({**spec, "factors": {}}, 1.0, where)
+        sag = static_sag_m(cfg.vehicle, design.vehicle) + design.nonlinear.static_deflection_m
+        if sag != cfg.nonlinear.static_deflection_m:
+            cfg = dataclasses.replace(cfg, nonlinear=dataclasses.replace(
+                cfg.nonlinear, static_deflection_m=sag))
     return cfg
 
 
