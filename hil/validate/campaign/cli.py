@@ -44,14 +44,25 @@ def main(args) -> int:
         fail(str(exc))
     rep = report(db_path)
     rep["this_run"] = counts
-    report_figure(rep, out / "ratios.png")
+    figures(rep, out)
     (out / "report.json").write_text(json.dumps(finite(rep), indent=2) + "\n")
     if args.json:
         print(json.dumps(finite(rep), indent=2))
     else:
         render(rep)
-        print(f"report: {out / 'report.json'}, {out / 'ratios.png'}")
+        print(f"report: {out / 'report.json'}, figures: {out}/*.png")
     return 0 if rep["verdict"] == "pass" else 1
+
+
+def figures(rep: dict, out: Path) -> list[Path]:
+    """The report's figures: ``ratios.png`` (each group's mean against its limits) and, for a
+    space, per base car ``space_BASE.png`` and ``passfail_BASE.png``."""
+    from hil.validate.campaign import space_report
+
+    paths = [report_figure(rep, out / "ratios.png")]
+    if rep.get("space"):
+        paths += space_report.figures(rep["space"], out)
+    return paths
 
 
 def _interrupt(*_) -> None:
@@ -67,7 +78,7 @@ def report_main(args) -> int:
         fail(str(exc))
     out = Path(args.out) if args.out else Path(args.db).parent
     out.mkdir(parents=True, exist_ok=True)
-    report_figure(rep, out / "ratios.png")
+    figures(rep, out)
     if args.json:
         print(json.dumps(finite(rep), indent=2))
     else:

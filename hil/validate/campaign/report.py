@@ -9,8 +9,12 @@ import sqlite3
 from pathlib import Path
 
 from calib.errors import ConfigError
+from hil.validate.campaign import space_report
 from hil.validate.campaign.case import MIXED
 from hil.validate.campaign.spec import label
+
+MAX_ROWS = 40             # groups the text report lists whole (report.json has every one)
+
 
 def report(db_path: Path) -> dict:
     """The summary of a campaign database: cases and pass rate; per criterion (each check
@@ -47,8 +51,12 @@ def report(db_path: Path) -> dict:
                          f"{m[2]}@{m[3]:g}"), []).append(m[4] or 0.0)
     worst = sorted(segs, key=lambda s: (-s[8], s[0], s[4]))[:10]
     passed = sum(c[4] == "pass" for c in cases)
+    space = space_report.summary(db_path)
+    if space is not None:
+        space["campaign"] = name
     return {"campaign": name, "cases": len(cases), "passed": passed, "max_gap": max_gap,
             "pass_rate": passed / len(cases) if cases else float("nan"),
+            "pass_rate_ci95": list(space_report.proportion_ci(passed, len(cases))),
             "wall_s": sum(c[8] for c in cases),
             "software_versions": versions,
             "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
@@ -64,6 +72,7 @@ def report(db_path: Path) -> dict:
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
                        "command": s[10], "limit_free": s[11], "gap_free": s[12]}
                       for s in worst],
+            "space": space,
             "verdict": "pass" if cases and passed == len(cases) and not over
             and len(versions) == 1 else "fail"}
 
@@ -167,8 +176,10 @@ def render(rep: dict) -> None:
     from rich.table import Table
 
     con = Console()
+    lo, hi = rep["pass_rate_ci95"]
     con.print(f"campaign {rep['campaign']}: {rep['passed']}/{rep['cases']} cases pass "
-              f"({100 * rep['pass_rate']:.1f} %), {rep['wall_s']:.0f} s of worker time")
+              f"({100 * rep['pass_rate']:.1f} %, 95 % CI {100 * lo:.1f}–{100 * hi:.1f} %), "
+              f"{rep['wall_s']:.0f} s of worker time")
     con.print("software: " + "; ".join(f"{v or '?'} ({n} cases)"
                                        for v, n in rep["software_versions"].items()))
     if rep.get("infeasible"):
@@ -183,20 +194,24 @@ def render(rep: dict) -> None:
         for k, v in rep["failures_by_criterion"].items():
             t.add_row(k, str(v))
         con.print(t)
-    t = Table(title="per vehicle, mode and grade: the mean (95 % CI) against the limit under "
-                    "the per-drive bound (judged: gap <= tolerance = max_gap + 2 sigma/sqrt n) "
-                    "and the unbounded limit")
-    for col in ("vehicle", "mode", "grade", "ratio", "n", "mean", "95 % CI", "limit", "gap",
-                "tolerance", "unbounded", "gap", "ok"):
-        t.add_column(col, justify="right" if col not in ("vehicle", "mode", "ratio") else
-                     "left")
-    for r in rep["ratios"]:
-        lo, hi = r["ci95"]
-        t.add_row(r["vehicle"], r["mode"], r["grade"], r["ratio"], str(r["n"]),
-                  f"{r['mean']:.3f}", "-" if math.isnan(lo) else f"{lo:.3f}–{hi:.3f}",
-                  f"{r['limit']:.3f}", f"{r['gap']:+.3f}",
+    rows = rep["ratios"]
+    shown = rows if len(rows) <= MAX_ROWS else (
+        [r for r in rows if not r["ok"]]
+        + sorted((r for r in rows if r["ok"]), key=lambda r: -r["gap"])[:10])
+    what = "" if shown is rows else (f" ({len(shown)} of {len(rows)}: those not ok and the "
+                                     "10 largest gaps; all in report.json)")
+    t = Table(title="the mean over the seeds against the limit under the per-drive bound "
+                    "(ok: gap <= tol = max_gap + 2 sigma/sqrt n) and the unbounded limit"
+                    + what)
+    for col in ("vehicle", "segment", "n", "mean", "limit", "gap", "tol", "unbounded",
+                "ok"):
+        t.add_column(col, justify="left" if col in ("vehicle", "segment") else "right")
+    for r in shown:
+        t.add_row(r["vehicle"], f"{r['mode']} {r['grade']}", str(r["n"]),
+                  f"{r['mean']:.3f}", f"{r['limit']:.3f}", f"{r['gap']:+.3f}",
                   "-" if r["tolerance"] is None else f"{r['tolerance']:.3f}",
-                  f"{r['limit_free']:.3f}", f"{r['gap_free']:+.3f}", "yes" if r["ok"] else "NO")
+                  f"{r['limit_free']:.3f} ({r['gap_free']:+.3f})",
+                  "yes" if r["ok"] else "NO")
     con.print(t)
     if rep["mixed"]:
         t = Table(title="segments driven in more than one mode (judged by no mode's "
@@ -207,12 +222,12 @@ def render(rep: dict) -> None:
             t.add_row(m["vehicle"], m["segment"], str(m["n"]),
                       f"{100 * m['road_holding_share']:.0f} % of their time")
         con.print(t)
-    t = Table(title="worst cases (largest gap to the limit)")
-    for col in ("vehicle", "mode", "segment", "value", "limit", "gap", "reproduce"):
-        t.add_column(col)
+    con.print("worst cases (largest gap to the limit under the per-drive bound), each with "
+              "the command that reproduces it:")
     for w in rep["worst"]:
-        t.add_row(label({"name": w["vehicle"], "factors": w["factors"]}),
-                  w["mode"], w["segment"], f"{w['value']:.3f}", f"{w['limit']:.3f}",
-                  f"{w['gap']:+.3f}", w["command"])
-    con.print(t)
+        con.print(f"  {label({'name': w['vehicle'], 'factors': w['factors']})}, {w['mode']} "
+                  f"{w['segment']}: {w['value']:.3f}, limit {w['limit']:.3f}, gap "
+                  f"{w['gap']:+.3f}\n    {w['command']}", soft_wrap=True)
+    if rep.get("space"):
+        space_report.render(rep["space"], con)
     con.print(f"verdict: {rep['verdict'].upper()}")
