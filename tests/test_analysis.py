@@ -411,3 +411,23 @@ def test_the_limits_under_the_per_drive_bound_hold_it_and_reach_the_plain_ones_w
             assert r.value > plain[name].value + 0.005      # the bound binds on this road
         for f in free:
             assert f[name].value == pytest.approx(plain[name].value, abs=1e-3)
+
+
+def test_the_bounded_limits_of_a_short_drive():
+    """On a short drive (the city route's C at 10 m/s: 17 s scored) sigma is large and the
+    fixed point of bound and gain oscillates: constrained_limits still reaches it (half
+    steps once a step overshoots), its bounds hold at the gain; on 5 s no controller keeps
+    all three ratios within their bounds, said in one line (a campaign then judges by the
+    unbounded limit)."""
+    from calib.linear import constrained_limits
+    from calib.model import window_scatter
+
+    model = linear_model(CFG.vehicle, 64e-6, 10.0)
+    res = constrained_limits(model, 17.0)
+    for name, bounded in (("comfort", [1, 2]), ("safety", [0, 1]), ("eq43", [0, 1, 2])):
+        r = res[name]
+        _, sigma = window_scatter(model, r.K, 17.0)
+        assert np.all(r.ratios[bounded] <= np.exp(-3.0 * sigma[bounded]) + 2e-3), name
+    assert res["safety"].value > physical_limits(model)["safety"].value + 0.05
+    with pytest.raises(ValueError, match="no controller keeps every ratio within its bound"):
+        constrained_limits(linear_model(CFG.vehicle, 64e-6, 30.0), 5.0)

@@ -544,3 +544,30 @@ def test_the_sensitivity_finds_the_parameter_an_outcome_depends_on():
     assert res["flat"] == {"skipped": "does not vary"}
     assert space_report.influential({"parameters": params, "sensitivity": res}, 1) == ["b"]
     assert space_report.proportion_ci(0, 128)[1] == pytest.approx(0.0284, abs=1e-4)
+
+
+@pytest.mark.slow
+def test_the_tolerance_tool_brackets_where_a_drive_starts_to_fail(tmp_path):
+    """tools.tolerance: the base car on its own calibration, one parameter at a time. The
+    tyre's +-20 % passes whole on 6 s of the city route; the sprung mass towards +30 % is
+    bracketed: the factor that passes, the one that fails and what failed there (a payload
+    sags the car, and its deflection sensor reads it); exit 1 then. A bad vehicle file is one
+    line, exit 2."""
+    proc = subprocess.run([sys.executable, "-m", "tools.tolerance", "--route", "city",
+                           "--duration", "6", "--steps", "2", "--parameters",
+                           "tire_stiffness_n_per_m", "sprung_mass_kg", "--json"],
+                          capture_output=True, text=True, cwd=ROOT, timeout=900)
+    out = json.loads(proc.stdout)
+    rows = {(r["parameter"], r["range_end"]): r for r in out["rows"]}
+    assert set(rows) == {("tire_stiffness_n_per_m", 0.8), ("tire_stiffness_n_per_m", 1.2),
+                         ("sprung_mass_kg", 1.3)}
+    assert rows[("tire_stiffness_n_per_m", 0.8)]["whole_range"]
+    mass = rows[("sprung_mass_kg", 1.3)]
+    assert not mass["whole_range"] and 1.0 <= mass["passes_at"] < mass["fails_at"] <= 1.3
+    assert any("susp_defl_plausibility" in f for f in mass["failed"])
+    assert out["verdict"] == "fail" and proc.returncode == 1
+    bad = tmp_path / "v.toml"
+    bad.write_text("[vehicle]\nsprung_mass_kg = 'heavy'\n")
+    proc = subprocess.run([sys.executable, "-m", "tools.tolerance", "--vehicle", str(bad)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1

@@ -168,10 +168,12 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
     name, value = {"comfort": ("comfort_ba", r["ba"]), "safety": ("safety_dtd", r["dtd"]),
                    "comprehensive": ("eq43_sum", sum(r.values()))}[driven]
     key = LIMIT_OF[driven]
-    limit = limits[key]["bounded"]
-    row.update(limit_name=name, limit_value=limit, gap=value - limit,
-               limit_free=limits[key]["free"], gap_free=value - limits[key]["free"],
-               sigma=limits[key]["sigma"])
+    free = limits[key]["free"]
+    # (no bounded limit: a drive too short for any controller to hold the bound; its
+    # unbounded limit judges it)
+    limit = free if limits[key]["bounded"] is None else limits[key]["bounded"]
+    row.update(limit_name=name, limit_value=limit, gap=value - limit, limit_free=free,
+               gap_free=value - free, sigma=limits[key]["sigma"])
     why = []
     if acceptance:
         raised = None
@@ -180,7 +182,9 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
             from hil.config import default_vehicle
 
             base = _limits(default_vehicle().vehicle, rs, route, window_s)
-            raised = {RELATIVE_KEY[driven]: limit - base[key]["bounded"]}
+            ref = base[key]["bounded"] if limits[key]["bounded"] is not None else None
+            raised = {RELATIVE_KEY[driven]: limit - (base[key]["free"] if ref is None
+                                                     else ref)}
         why = violations(driven, r, limit, raised)
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
@@ -246,7 +250,11 @@ def _limit_values(vehicle, speed: float, convention: str, cutoff: float, window_
     def compute() -> dict:
         model = linear_model(vehicle, _LIMIT_GQ_M3, speed, convention, cutoff)
         free = physical_limits(model)
-        bounded = constrained_limits(model, window_s)
+        try:
+            bounded = constrained_limits(model, window_s)
+        except ValueError:              # (a drive too short for the per-drive bound)
+            return {name: {"free": free[name].value, "bounded": None, "sigma": None}
+                    for name in LIMIT_OF.values()}
         return {name: {"free": free[name].value, "bounded": res.value,
                        "sigma": drive_scatter(model, name, res.K, window_s)}
                 for name, res in bounded.items()}

@@ -121,7 +121,8 @@ def _group(key: tuple, segs: list, max_gap) -> dict:
     half = _t95(n - 1) * sd / math.sqrt(n) if n > 1 else float("nan")
     limit = sum(s[7] for s in segs) / n
     free = sum(s[11] for s in segs) / n
-    sigma = sum(s[13] for s in segs) / n
+    # (sigma none: a drive too short for the bounded limit, judged on the unbounded one)
+    sigma = sum(s[13] or 0.0 for s in segs) / n
     tol = None if max_gap is None else max_gap + 2.0 * sigma / math.sqrt(n)
     return {"vehicle": vehicle, "mode": mode, "grade": grade, "ratio": limit_name, "n": n,
             "mean": mean, "ci95": [mean - half, mean + half], "limit": limit,
