@@ -113,7 +113,9 @@ def _campaign_parsers(sub) -> None:
     p.add_argument("case_id", metavar="CASE_ID")
     p = sub.add_parser("campaign-report", help="the summary of a campaign database")
     p.add_argument("db", metavar="DB")
-    p.add_argument("--out", metavar="DIR", help="where ratios.png goes (default: beside DB)")
+    p.add_argument("--out", metavar="DIR", help="where the figures go (default: beside DB)")
+    p.add_argument("--cars", metavar="FILE.md", help="also write every failing and infeasible "
+                   "sampled car, with what failed and its command, as Markdown")
     add_json_argument(p)
 
 

@@ -522,6 +522,15 @@ def test_a_small_space_campaign_gives_the_same_rows_twice_and_its_report(tmp_pat
                                                  "spring_stiffness_n_per_m"}
     for png in ("ratios.png", "space_default.png", "passfail_default.png"):
         assert (tmp_path / "a" / png).stat().st_size > 5_000, png
+    # every failing car and every infeasible one, as Markdown
+    md = tmp_path / "cars.md"
+    again = hil("campaign-report", str(tmp_path / "a" / "campaign.sqlite"), "--cars", str(md),
+                "--json")
+    assert again.returncode == (0 if rep["verdict"] == "pass" else 1)
+    text = md.read_text()
+    assert f"{len(space['failing'])} of {space['cars']} cars fail" in text
+    assert text.count("python -m hil campaign-case") == len(space["failing"])
+    assert all(x["reason"] in text for x in rep["infeasible"])
     assert rep["verdict"] == ("pass" if rep["passed"] == rep["cases"] else "fail")
 
 

@@ -79,6 +79,11 @@ def report_main(args) -> int:
     out = Path(args.out) if args.out else Path(args.db).parent
     out.mkdir(parents=True, exist_ok=True)
     figures(rep, out)
+    if args.cars:
+        from hil.cli import write_atomic
+        from hil.validate.campaign import space_report
+
+        write_atomic(Path(args.cars), space_report.cars_markdown(rep))
     if args.json:
         print(json.dumps(finite(rep), indent=2))
     else:

@@ -40,18 +40,24 @@ def summary(db_path: Path) -> Optional[dict]:
         outputs = sorted({k for c in group for k in c["outcomes"]})
         passed = sum(c["pass"] for c in group)
         lo, hi = proportion_ci(passed, len(group))
-        worst = sorted(group, key=_badness)[:10]
+        ranked = sorted(group, key=_badness)
         out["bases"][base] = {
             "cars": len(group), "passed": passed, "pass_rate": passed / len(group),
             "pass_rate_ci95": [lo, hi], "parameters": params, "outputs": outputs,
             "sensitivity": sensitivity(group, params, outputs),
-            "worst": [{"car": c["label"], "sample": c["sample"], "pass": c["pass"],
-                       "factors": c["factors"], "outcomes": c["outcomes"],
-                       "failed": c["failed"], "command": c["command"]} for c in worst],
+            # the ten worst cars, then every failing car, each with its command
+            "worst": [_car(c) for c in ranked[:10]],
+            "failing": [_car(c) for c in ranked if not c["pass"]],
             "table": [{"sample": c["sample"], "pass": c["pass"], "factors": c["factors"],
                        "outcomes": c["outcomes"]}
                       for c in sorted(group, key=lambda c: c["sample"])]}
     return out
+
+
+def _car(c: dict) -> dict:
+    return {"car": c["label"], "sample": c["sample"], "pass": c["pass"],
+            "factors": c["factors"], "outcomes": c["outcomes"], "failed": c["failed"],
+            "command": c["command"]}
 
 
 def proportion_ci(k: int, n: int) -> tuple[float, float]:
@@ -173,6 +179,29 @@ def influential(base: dict, n: int = 2) -> list[str]:
     return sorted(total, key=lambda p: -total[p])[:n]
 
 
+def cars_markdown(rep: dict) -> str:
+    """Every failing sampled car (each with what failed and the command of its worst case)
+    and every infeasible one (with its reason), as Markdown."""
+    lines = [f"# `{rep['campaign']}`: the failing and infeasible cars", "",
+             f"{rep['passed']}/{rep['cases']} cases pass; software "
+             f"{', '.join(rep['software_versions'])}. Written by `python -m hil "
+             "campaign-report DB --cars FILE`; each command names the database as the "
+             "campaign wrote it.", ""]
+    space = rep.get("space") or {"bases": {}}
+    for base, b in space["bases"].items():
+        lines += [f"## {base}: {len(b['failing'])} of {b['cars']} cars fail", ""]
+        if b["failing"]:
+            lines += ["| car | factors | failed | reproduce |", "|---|---|---|---|"]
+        for c in b["failing"]:
+            f = ", ".join(f"{k.split('_')[0]} ×{v:.3f}" for k, v in sorted(c["factors"].items()))
+            lines.append(f"| {c['sample']} | {f} | {'; '.join(c['failed'])} | "
+                         f"`{c['command']}` |")
+        lines.append("")
+    lines += [f"## Infeasible: {len(rep['infeasible'])} cars", ""]
+    lines += [f"- {x['vehicle']}: {x['reason']}" for x in rep["infeasible"]]
+    return "\n".join(lines).rstrip() + "\n"
+
+
 def figures(space: dict, out: Path) -> list[Path]:
     """Per base car: each outcome against each parameter (a dot per car, failing cars red),
     and the pass/fail map over the two most influential parameters."""
@@ -259,9 +288,10 @@ def render(space: dict, con) -> None:
                 else:
                     t.add_row(name, *(f"{res[p]['S1']:.2f}" for p in b["parameters"]))
             con.print(t)
-        con.print(f"{base}: the worst cars (failing first, the longest passive first), "
-                  "each with the command that reproduces its worst case:")
-        for w in b["worst"]:
+        shown = b["worst"] + b["failing"][len(b["worst"]):]
+        con.print(f"{base}: the worst cars (failing first, the longest passive first) and "
+                  "every failing car, each with the command that reproduces its worst case:")
+        for w in shown:
             con.print(f"  {w['car']}: {'passes' if w['pass'] else 'FAILS'}, passive "
                       f"{100 * w['outcomes'].get('passive_share', 0.0):.0f} % of the drive; "
                       f"{'; '.join(w['failed']) or '-'}\n    {w['command']}", soft_wrap=True)
