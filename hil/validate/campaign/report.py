@@ -36,7 +36,7 @@ def report(db_path: Path) -> dict:
             criteria[key] = criteria.get(key, 0) + 1
     groups: dict[tuple, list] = {}
     for s in segs:
-        vehicle = label({"name": s[1], "factors": json.loads(s[2])})
+        vehicle = _name(s[1], s[2], s[14])
         groups.setdefault((vehicle, s[3], s[4], s[6]), []).append(s)
     rows = [_group(key, vals, max_gap) for key, vals in sorted(groups.items())]
     over = sum(not r["ok"] for r in rows)
@@ -47,7 +47,7 @@ def report(db_path: Path) -> dict:
         criteria["one software version (cases of different code)"] = len(cases)
     held: dict[tuple, list] = {}
     for m in mixed:
-        held.setdefault((label({"name": m[0], "factors": json.loads(m[1])}),
+        held.setdefault((_name(m[0], m[1], m[5]),
                          f"{m[2]}@{m[3]:g}"), []).append(m[4] or 0.0)
     worst = sorted(segs, key=lambda s: (-s[8], s[0], s[4]))[:10]
     passed = sum(c[4] == "pass" for c in cases)
@@ -67,7 +67,8 @@ def report(db_path: Path) -> dict:
             "infeasible": [{"vehicle": v, "reason": r} for v, r in infeasible],
             "infeasible_share": len(infeasible) / max(1, len(infeasible) + len(
                 {(c[1], c[2]) for c in cases})),
-            "worst": [{"case_id": s[0], "vehicle": s[1], "factors": json.loads(s[2]),
+            "worst": [{"case_id": s[0], "vehicle": s[1], "car": _name(s[1], s[2], s[14]),
+                       "factors": json.loads(s[2]),
                        "mode": s[3], "segment": f"{s[4]}@{s[5]:g}", "ratio": s[6],
                        "value": s[7] + s[8], "limit": s[7], "gap": s[8], "ok": bool(s[9]),
                        "command": s[10], "limit_free": s[11], "gap_free": s[12]}
@@ -94,10 +95,12 @@ def _read(db_path: Path) -> tuple:
                               "limits): run its campaign again into a new --out")
         segs = db.execute("SELECT s.case_id, c.vehicle, c.factors, s.mode, s.grade, "
                           "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command, "
-                          "s.limit_free, s.gap_free, s.sigma FROM segments s JOIN cases c "
-                          "USING (case_id) WHERE s.gap IS NOT NULL").fetchall()
+                          "s.limit_free, s.gap_free, s.sigma, json_extract(c.case_json, "
+                          "'$.vehicle.sample') FROM segments s JOIN cases c USING (case_id) "
+                          "WHERE s.gap IS NOT NULL").fetchall()
         mixed = db.execute("SELECT c.vehicle, c.factors, s.grade, s.speed_mps, "
-                           "json_extract(s.metrics, '$.road_holding_share') FROM segments s "
+                           "json_extract(s.metrics, '$.road_holding_share'), json_extract("
+                           "c.case_json, '$.vehicle.sample') FROM segments s "
                            "JOIN cases c USING (case_id) WHERE s.mode = ?", (MIXED,)).fetchall()
         meta = dict(db.execute("SELECT key, value FROM meta"))
         try:
@@ -108,6 +111,14 @@ def _read(db_path: Path) -> tuple:
     finally:
         db.close()
     return cases, versions, segs, mixed, meta, infeasible
+
+
+def _name(vehicle: str, factors: str, sample) -> str:
+    """A group's vehicle: a sampled car by its number (its factors are in the space's
+    table), a listed variant by its factors."""
+    if sample is not None:
+        return f"{vehicle} car {sample}"
+    return label({"name": vehicle, "factors": json.loads(factors)})
 
 
 def _group(key: tuple, segs: list, max_gap) -> dict:
@@ -137,14 +148,23 @@ def _t95(dof: int) -> float:
     return float(t.ppf(0.975, dof))
 
 
+def shown_groups(rows: list) -> list:
+    """The groups the text and the figure show: all up to ``MAX_ROWS``, else those not ok
+    and the ten largest gaps."""
+    if len(rows) <= MAX_ROWS:
+        return rows
+    return ([r for r in rows if not r["ok"]]
+            + sorted((r for r in rows if r["ok"]), key=lambda r: -r["gap"])[:10])
+
+
 def report_figure(rep: dict, path: Path) -> Path:
-    """Each group's mean ratio with its 95 % interval, against its limit."""
+    """Each group's mean ratio with its 95 % interval, against its limits (``shown_groups``)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = rep["ratios"]
+    rows = shown_groups(rep["ratios"])
     fig, ax = plt.subplots(figsize=(9, 0.35 * len(rows) + 1.6))
     y = list(range(len(rows)))
     for i, r in enumerate(rows):
@@ -164,7 +184,9 @@ def report_figure(rep: dict, path: Path) -> Path:
     ax.grid(alpha=0.3, axis="x")
     if rows:
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    ax.set_title(f"campaign {rep['campaign']}: {rep['passed']}/{rep['cases']} cases pass",
+    more = "" if len(rows) == len(rep["ratios"]) else (
+        f" ({len(rows)} of {len(rep['ratios'])} groups: those not ok, the largest gaps)")
+    ax.set_title(f"campaign {rep['campaign']}: {rep['passed']}/{rep['cases']} cases pass{more}",
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90, metadata={"Software": None})
@@ -196,9 +218,7 @@ def render(rep: dict) -> None:
             t.add_row(k, str(v))
         con.print(t)
     rows = rep["ratios"]
-    shown = rows if len(rows) <= MAX_ROWS else (
-        [r for r in rows if not r["ok"]]
-        + sorted((r for r in rows if r["ok"]), key=lambda r: -r["gap"])[:10])
+    shown = shown_groups(rows)
     what = "" if shown is rows else (f" ({len(shown)} of {len(rows)}: those not ok and the "
                                      "10 largest gaps; all in report.json)")
     t = Table(title="the mean over the seeds against the limit under the per-drive bound "
@@ -226,7 +246,7 @@ def render(rep: dict) -> None:
     con.print("worst cases (largest gap to the limit under the per-drive bound), each with "
               "the command that reproduces it:")
     for w in rep["worst"]:
-        con.print(f"  {label({'name': w['vehicle'], 'factors': w['factors']})}, {w['mode']} "
+        con.print(f"  {w['car']}, {w['mode']} "
                   f"{w['segment']}: {w['value']:.3f}, limit {w['limit']:.3f}, gap "
                   f"{w['gap']:+.3f}\n    {w['command']}", soft_wrap=True)
     if rep.get("space"):
