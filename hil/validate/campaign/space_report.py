@@ -243,8 +243,8 @@ def figures(space: dict, out: Path) -> list[Path]:
         top = influential(b)
         if len(top) == 2:
             fig, ax = plt.subplots(figsize=(5.5, 4.5))
-            for good, colour, mark, what in ((True, "C0", "o", "passes"),
-                                             (False, "C3", "x", "fails")):
+            for good, colour, mark, what in ((True, "C0", "o", "pass"),
+                                             (False, "C3", "x", "fail")):
                 pts = [(r["factors"].get(top[0], 1.0), r["factors"].get(top[1], 1.0))
                        for r, g in zip(rows, ok) if g == good]
                 if pts:
