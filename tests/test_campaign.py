@@ -317,6 +317,12 @@ def test_relative_acceptance_moves_the_ba_and_dtd_bounds_by_the_vehicles_own_lim
     assert default[True]["why"] == default["relative"]["why"] == "ba 0.860 > 0.850"
     assert suv[True]["limit_value"] > 0.85                   # beyond any controller
     assert not suv[True]["ok"] and suv["relative"]["ok"]
+    # with any mode, the road grade estimated right for 95 % of the segment
+    for share, ok in ((0.95, True), (0.949, False)):
+        row = cp.judge_segment(cfg, route, route.segments[0], dict(
+            seg, ratio={"ba": 0.80, "sws": 0.9, "dtd": 0.99}, grade_accuracy=share),
+            "auto", True, 177.0)
+        assert row["ok"] == ok and ("grade_accuracy 0.949 < 0.95" in row["why"]) != ok
     bad = tmp_path / "bad.toml"
     bad.write_text('[campaign]\nroutes = ["city"]\n[criteria]\nacceptance = "yes"\n')
     with pytest.raises(ConfigError, match="criteria.acceptance"):

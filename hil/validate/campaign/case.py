@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from hil.config import PACKAGE_DIR
-from hil.validate.acceptance import GRADE_MODE, RELATIVE_KEY, violations
+from hil.validate.acceptance import GRADE_ACCURACY, GRADE_MODE, RELATIVE_KEY, violations
 from hil.validate.campaign.spec import case_id, route_of, vehicle_config
 
 MIXED = "mixed"            # a segment driven in more than one mode (case.driven_mode)
@@ -148,7 +148,8 @@ def calibration_car(spec: dict, cfg):
 
 def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
                   window_s: float) -> dict:
-    """A segment against the acceptance of the mode it was driven in, and its gap to the
+    """A segment against the acceptance of the mode it was driven in (with any mode, the
+    road grade estimated right for at least ``GRADE_ACCURACY`` of it), and its gap to the
     vehicle's own limit for that mode under the per-drive bound (``calib.linear.
     constrained_limits`` over the segment's scored ``window_s``: the best any causal
     controller reaches while each bounded ratio stays at most 1 on such a drive with 3 sigma
@@ -161,7 +162,15 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
            "scored": bool(seg.get("scored", True)), "ratio": seg.get("ratio", {}),
            "limit_name": None, "limit_value": None, "gap": None, "limit_free": None,
            "gap_free": None, "sigma": None, "ok": True, "why": "", "metrics": seg}
-    if not row["scored"] or driven not in ("comfort", "safety", "comprehensive"):
+    if not row["scored"]:
+        return row
+    grade_why = []
+    if acceptance and not seg.get("grade_accuracy", 1.0) >= GRADE_ACCURACY:
+        # the road grade the ECU estimates, right for this share of the segment at least
+        grade_why = [f"grade_accuracy {seg.get('grade_accuracy', float('nan')):.3f} < "
+                     f"{GRADE_ACCURACY:g}"]
+        row["ok"], row["why"] = False, grade_why[0]
+    if driven not in ("comfort", "safety", "comprehensive"):
         return row
     limits = _limits(cfg.vehicle, rs, route, window_s)
     r = seg["ratio"]
@@ -182,10 +191,11 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
             from hil.config import default_vehicle
 
             base = _limits(default_vehicle().vehicle, rs, route, window_s)
-            ref = base[key]["bounded"] if limits[key]["bounded"] is not None else None
-            raised = {RELATIVE_KEY[driven]: limit - (base[key]["free"] if ref is None
-                                                     else ref)}
+            both = limits[key]["bounded"] is not None and base[key]["bounded"] is not None
+            ref = base[key]["bounded"] if both else base[key]["free"]
+            raised = {RELATIVE_KEY[driven]: (limit if both else free) - ref}
         why = violations(driven, r, limit, raised)
+    why = grade_why + why
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
 
