@@ -559,6 +559,10 @@ def test_the_sensitivity_finds_the_parameter_an_outcome_depends_on():
     assert res["flat"] == {"skipped": "does not vary"}
     assert space_report.influential({"parameters": params, "sensitivity": res}, 1) == ["b"]
     assert space_report.proportion_ci(0, 128)[1] == pytest.approx(0.0284, abs=1e-4)
+    # a car's failures list each clause once over its seeds, without the values
+    assert space_report._clause("segment 3 (D@20): ba 1.051 > 1.000; grade_accuracy 0.300 "
+                                "< 0.95") == "segment 3 (D@20): ba; grade_accuracy"
+    assert space_report._clause("failsafe_ticks") == "failsafe_ticks"
 
 
 @pytest.mark.slow

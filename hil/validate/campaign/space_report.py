@@ -97,6 +97,7 @@ def _cars(db_path: Path) -> dict:
         ok = verdict == "pass"
         car["pass"] = car["pass"] and ok
         for f in json.loads(failed):
+            f = _clause(f)
             if f not in car["failed"]:
                 car["failed"].append(f)
         run = _outcomes(case["mode"], by_case.get(case_id, []))
@@ -108,6 +109,15 @@ def _cars(db_path: Path) -> dict:
         keys = sorted({k for r in car["runs"] for k in r})
         car["outcomes"] = {k: _mean([r[k] for r in car["runs"] if k in r]) for k in keys}
     return cars
+
+
+def _clause(failure: str) -> str:
+    """A failure without its values, so a car's seeds list each clause once:
+    'segment 3 (D@20): ba 1.051 > 1.000' -> 'segment 3 (D@20): ba'."""
+    if failure.startswith("segment") and ": " in failure:
+        where, what = failure.split(": ", 1)
+        return f"{where}: {'; '.join(dict.fromkeys(w.split()[0] for w in what.split('; ')))}"
+    return failure
 
 
 def _outcomes(mode: str, segs: list) -> dict:
