@@ -166,3 +166,16 @@ def test_a_run_whose_nodes_wrote_nothing_still_leaves_a_failing_report(tmp_path,
     md = (tmp_path / "report.md").read_text()
     assert "INCOMPLETE" in md and "energy: not recorded" in md
     assert junitparser.JUnitXml.fromfile(args.junit).failures > 0
+
+
+def test_the_verdict_text_names_the_confirmed_dtcs(clean, capsys):
+    """A failing dtcs_confirmed check prints which DTCs, by name (a count names no part)."""
+    dtc = copy.deepcopy(clean)
+    dtc["dtcs_confirmed"] = ["body_accel_plausibility", "susp_defl_plausibility"]
+    verdict.attach(dtc, _again(dtc))
+    verdict.render(dtc)
+    out = capsys.readouterr().out
+    assert "FAIL dtcs_confirmed = 2" in out
+    assert "confirmed DTCs: body_accel_plausibility, susp_defl_plausibility" in out
+    verdict.render(clean)
+    assert "confirmed DTCs" not in capsys.readouterr().out

@@ -211,5 +211,7 @@ def render(report: dict) -> None:
     bad = [c for c in checks if not c["ok"]]
     for c in bad:
         console.print(f"  [red]FAIL[/red] {c['name']} = {_text(c['value'])} (limit {c['limit']})")
+    if report.get("dtcs_confirmed"):         # (by name: what a technician would read out)
+        console.print(f"  confirmed DTCs: {', '.join(report['dtcs_confirmed'])}")
     word = "[green]PASS[/green]" if report.get("verdict") == PASS else "[red]FAIL[/red]"
     console.print(f"verdict: {word} ({len(checks) - len(bad)}/{len(checks)} checks hold)")
