@@ -30,13 +30,13 @@ def case(vehicle: str | None, route: dict, seed: int, key: str, factor: float,
          duration_s: float | None = None) -> dict:
     """The campaign case of the base car with one factor, on its nominal calibration, with
     its bump stops."""
+    from hil.validate.campaign.spec import new_case
+
     text = Path(vehicle).read_text() if vehicle else None
     name = Path(vehicle).stem if vehicle else "default"
-    return {"route": route, "seed": seed,
-            "vehicle": {"name": name, "toml": text, "factors": {key: factor},
-                        "nonlinear": {"bump_stops": True}, "sample": 1,
-                        "calibration": "nominal"},
-            "mode": "auto", "fixed_point": False, "noise": 1.0, "duration_s": duration_s}
+    return new_case(route, seed, {"name": name, "toml": text, "factors": {key: factor},
+                                  "nonlinear": {"bump_stops": True}, "sample": 1,
+                                  "calibration": "nominal"}, duration_s=duration_s)
 
 
 def tolerance(vehicle: str | None, route: dict, seed: int, steps: int, progress=None,

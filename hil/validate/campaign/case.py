@@ -12,7 +12,7 @@ from pathlib import Path
 
 from hil.config import PACKAGE_DIR
 from hil.validate.acceptance import GRADE_ACCURACY, GRADE_MODE, RELATIVE_KEY, violations
-from hil.validate.campaign.spec import case_id, route_of, vehicle_config
+from hil.validate.campaign.spec import base_spec, case_id, route_of, vehicle_config
 
 MIXED = "mixed"            # a segment driven in more than one mode (case.driven_mode)
 DRIVEN_SHARE = 0.95        # ... for less than this share of its window in its main mode
@@ -142,8 +142,7 @@ def calibration_car(spec: dict, cfg):
     calibration shipped for every car the space holds."""
     if spec.get("calibration") != "nominal":
         return cfg
-    base = {k: v for k, v in spec.items() if k not in ("sample", "calibration")}
-    return vehicle_config({**base, "factors": {}}, 1.0)
+    return vehicle_config(base_spec(spec), 1.0)
 
 
 def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
@@ -170,13 +169,12 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
         grade_why = [f"grade_accuracy {seg.get('grade_accuracy', float('nan')):.3f} < "
                      f"{GRADE_ACCURACY:g}"]
         row["ok"], row["why"] = False, grade_why[0]
-    if driven not in ("comfort", "safety", "comprehensive"):
+    if driven not in JUDGED:
         return row
     limits = _limits(cfg.vehicle, rs, route, window_s)
     r = seg["ratio"]
-    name, value = {"comfort": ("comfort_ba", r["ba"]), "safety": ("safety_dtd", r["dtd"]),
-                   "comprehensive": ("eq43_sum", sum(r.values()))}[driven]
-    key = LIMIT_OF[driven]
+    name, key = JUDGED[driven]
+    value = judged_value(driven, r)
     free = limits[key]["free"]
     # (no bounded limit: a drive too short for any controller to hold the bound; its
     # unbounded limit judges it)
@@ -200,7 +198,25 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
     return row
 
 
-LIMIT_OF = {"comfort": "comfort", "safety": "safety", "comprehensive": "eq43"}
+# per mode with a limit: the limit's name in the database and in calib.linear
+JUDGED = {"comfort": ("comfort_ba", "comfort"), "safety": ("safety_dtd", "safety"),
+          "comprehensive": ("eq43_sum", "eq43")}
+
+
+def judged_ratio(mode: str) -> str:
+    """What a segment driven in ``mode`` is judged by: the ratio its limit bounds, or "sum"
+    (Eq. (43): the three), as ``calib.linear.LIMIT_VALUE`` says."""
+    from calib.linear import LIMIT_VALUE
+    from calib.model import OUTPUTS
+
+    i = LIMIT_VALUE[JUDGED[mode][1]]
+    return "sum" if i is None else OUTPUTS[i]
+
+
+def judged_value(mode: str, ratio: dict) -> float:
+    """The value of ``judged_ratio(mode)`` in a segment's ratios."""
+    what = judged_ratio(mode)
+    return sum(ratio.values()) if what == "sum" else ratio[what]
 
 
 def scored_window(route, i: int, duration_s) -> float:
@@ -264,7 +280,7 @@ def _limit_values(vehicle, speed: float, convention: str, cutoff: float, window_
             bounded = constrained_limits(model, window_s)
         except ValueError:              # (a drive too short for the per-drive bound)
             return {name: {"free": free[name].value, "bounded": None, "sigma": None}
-                    for name in LIMIT_OF.values()}
+                    for _, name in JUDGED.values()}
         return {name: {"free": free[name].value, "bounded": res.value,
                        "sigma": drive_scatter(model, name, res.K, window_s)}
                 for name, res in bounded.items()}

@@ -12,6 +12,7 @@ from calib.errors import ConfigError
 from hil.validate.campaign import space_report
 from hil.validate.campaign.case import MIXED
 from hil.validate.campaign.spec import label
+from hil.validate.campaign.store import check_layout
 
 MAX_ROWS = 40             # groups the text report lists whole (report.json has every one)
 
@@ -89,10 +90,7 @@ def _read(db_path: Path) -> tuple:
                            "trace_sha256, wall_s FROM cases ORDER BY case_id").fetchall()
         versions = dict(db.execute("SELECT software_version, count(*) FROM cases GROUP BY "
                                    "software_version ORDER BY software_version"))
-        columns = {r[1] for r in db.execute("PRAGMA table_info(segments)")}
-        if "sigma" not in columns:
-            raise ConfigError(f"{db_path}: a campaign database of an older layout (no bounded "
-                              "limits): run its campaign again into a new --out")
+        check_layout(db, db_path)
         segs = db.execute("SELECT s.case_id, c.vehicle, c.factors, s.mode, s.grade, "
                           "s.speed_mps, s.limit_name, s.limit_value, s.gap, s.ok, c.command, "
                           "s.limit_free, s.gap_free, s.sigma, json_extract(c.case_json, "

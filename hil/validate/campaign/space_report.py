@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import Optional
 
 from hil.validate.acceptance import GRADE_MODE
+from hil.validate.campaign.case import JUDGED, judged_ratio, judged_value
 from hil.validate.campaign.spec import label
 
 RBD_M = 10                  # RBD-FAST's harmonics (SALib's default); it needs N > 2 M cars
-VALUE = {"comfort": "ba", "safety": "dtd", "comprehensive": "sum", "regen": "ba"}
 SENSITIVITY_METHOD = "RBD-FAST (SALib 1.6.0, first-order S1 with a bootstrap 95 % interval)"
 
 
@@ -126,12 +126,12 @@ def _outcomes(mode: str, segs: list) -> dict:
     for _, idx, grade, speed, ba, sws, dtd, gap, metrics in segs:
         m = json.loads(metrics)
         judged = GRADE_MODE.get(grade, "regen") if mode == "auto" else mode
-        what = VALUE.get(judged, "ba")
+        if judged not in JUDGED:          # (energy feedback, passive: judged by BA)
+            judged = "comfort"
         name = f"{idx + 1}:{grade}@{speed:g}"
         ratio = {"ba": ba, "sws": sws, "dtd": dtd}
-        value = sum(ratio.values()) if what == "sum" else ratio[what]
-        if value is not None and all(x is not None for x in ratio.values()):
-            out[f"{name} {what}"] = value
+        if all(x is not None for x in ratio.values()):
+            out[f"{name} {judged_ratio(judged)}"] = judged_value(judged, ratio)
         if gap is not None:
             out[f"{name} gap"] = gap
         passive.append((m.get("modes") or {}).get("passive", 0.0))

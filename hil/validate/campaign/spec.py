@@ -80,12 +80,18 @@ def load(path: str | Path) -> Campaign:
         raise ConfigError(f"{path}: criteria.acceptance must be true, false or \"relative\"")
     cases = {}                           # (a case listed twice is one case)
     for r, s, v, m, f, n in itertools.product(routes, seeds, vehicles, modes, fixed, noise):
-        case = {"route": r, "seed": s, "vehicle": v, "mode": m, "fixed_point": f, "noise": n,
-                "duration_s": duration}
+        case = new_case(r, s, v, m, f, n, duration)
         cases.setdefault(case_id(case), case)
     cases = tuple(cases.values())
     return Campaign(str(c.get("name", path.stem)), cases, acceptance,
                     None if max_gap is None else float(max_gap), tuple(infeasible))
+
+
+def new_case(route: dict, seed: int, vehicle: dict, mode: str = "auto", fixed_point: bool = False,
+             noise: float = 1.0, duration_s: Optional[float] = None) -> dict:
+    """One case: what ``case_id`` digests and a worker runs."""
+    return {"route": route, "seed": seed, "vehicle": vehicle, "mode": mode,
+            "fixed_point": fixed_point, "noise": noise, "duration_s": duration_s}
 
 
 def _list(path, table, key, kind, default=None, required=False) -> list:
@@ -259,12 +265,19 @@ def vehicle_config(spec: dict, noise: float, where: str = ""):
     if spec.get("calibration") == "nominal" and spec["factors"]:
         from calib.vehicle import static_sag_m
 
-        design = vehicle_config({**spec, "factors": {}}, 1.0, where)
+        design = vehicle_config(base_spec(spec), 1.0, where)
         sag = static_sag_m(cfg.vehicle, design.vehicle) + design.nonlinear.static_deflection_m
         if sag != cfg.nonlinear.static_deflection_m:
             cfg = dataclasses.replace(cfg, nonlinear=dataclasses.replace(
                 cfg.nonlinear, static_deflection_m=sag))
     return cfg
+
+
+def base_spec(spec: dict) -> dict:
+    """The car a space's car was sampled around: its file and [nonlinear], no factors (the
+    car a nominal calibration is designed for, and whose ride height it keeps)."""
+    return {**{k: v for k, v in spec.items() if k not in ("sample", "calibration")},
+            "factors": {}}
 
 
 def route_of(spec: dict):

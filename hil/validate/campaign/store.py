@@ -44,12 +44,21 @@ def open_db(path: Path) -> sqlite3.Connection:
     path.parent.mkdir(parents=True, exist_ok=True)
     db = sqlite3.connect(str(path))
     db.executescript(SCHEMA)
+    try:
+        check_layout(db, path)
+    except ConfigError:
+        db.close()
+        raise
+    return db
+
+
+def check_layout(db: sqlite3.Connection, path) -> None:
+    """ConfigError (one line) for a database of an older layout: its segments have no
+    bounded limits, so neither a resumed campaign nor its report could judge them."""
     columns = {r[1] for r in db.execute("PRAGMA table_info(segments)")}
     if "sigma" not in columns:
-        db.close()
         raise ConfigError(f"{path}: a campaign database of an older layout (no bounded "
-                          "limits); run the campaign into a new --out")
-    return db
+                          "limits): run its campaign again into a new --out")
 
 
 def done_ids(db: sqlite3.Connection) -> set[str]:
