@@ -35,7 +35,10 @@ def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
     return expm(M * dt)[:n, n]
 
 
-def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") -> fp.AkfParams:
+def akf_continuous(cfg: VehicleConfig, speed: float = NOMINAL_SPEED_MPS
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The filter's continuous model: (A, B_force), the 5-state quarter car with the
+    screw's viscous friction beside the damper and the road pole at ``speed``."""
     vp, ap = cfg.vehicle, cfg.actuator
     A4, b_force, b_road = mechanics(vp)
     b = ap.viscous_friction_n_s_per_m
@@ -46,8 +49,13 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     A[1, 0] += b / vp.unsprung_mass_kg
     A[1, 1] -= b / vp.unsprung_mass_kg
     A[:4, 4] = b_road
-    A[4, 4] = -2.0 * math.pi * DEFAULT_CUTOFF_N_PER_M * NOMINAL_SPEED_MPS
-    B = np.append(b_force, 0.0)
+    A[4, 4] = -2.0 * math.pi * DEFAULT_CUTOFF_N_PER_M * speed
+    return A, np.append(b_force, 0.0)
+
+
+def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") -> fp.AkfParams:
+    vp, ap = cfg.vehicle, cfg.actuator
+    A, B = akf_continuous(cfg)
     dt = opts.dt_s
     phi = expm(A * dt)
     gamma = np.ascontiguousarray(_zoh_input(A, B, dt))   # (a column slice otherwise)

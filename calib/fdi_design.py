@@ -15,11 +15,16 @@ def _ewma_level(window: int, alpha: float) -> tuple[float, float]:
     the EWMA of chi2(1) samples has mean 1 and variance lam/(2-lam), that of chi2_nu/nu.
     (chi2_nu's quantile as scipy.stats.chi2.ppf computes it, without importing scipy.stats,
     which took about a second of every run's start.)"""
+    lam = 2.0 / (window + 1)
+    return lam, chi2_level((2.0 - lam) / lam, alpha)
+
+
+def chi2_level(dof: float, alpha: float) -> float:
+    """chi2_dof(1 - alpha) / dof: the level of an EWMA test whose statistic is about
+    chi2_dof / dof (dof = W for one channel, m W for m whitened channels)."""
     from scipy.special import gammaincinv
 
-    lam = 2.0 / (window + 1)
-    nu = (2.0 - lam) / lam
-    return lam, float(2.0 * gammaincinv(nu / 2.0, 1.0 - alpha) / nu)
+    return float(2.0 * gammaincinv(dof / 2.0, 1.0 - alpha) / dof)
 
 
 def flatline_ticks(noise_std: float, lsb: float, alpha: float, max_p: float) -> int:

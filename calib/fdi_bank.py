@@ -1,0 +1,242 @@
+"""The isolation bank's residual generators (docs/diagnostics.md, "Isolability"): fixed-gain
+Kalman filters, each blind to one sensor (the generalised observer scheme). A fault of sensor
+j cannot make the filter that does not read j inconsistent; every filter that turns
+inconsistent clears the sensor it is blind to, and j is isolated once all the others are.
+
+The winding model (``_winding_model``): x = [zs_dot, zt_dot, zs, zt, zf, i, v_off], the
+5-state quarter car of the ECU's filter (``calib.ecu_params.akf_continuous``: the screw's
+friction, the road state) with the winding L di/dt = V + v_off - R i - K_e (zs_dot - zt_dot)
+driven by the voltage the bridge applies, the force K_f i, and v_off a random walk for what
+the voltage model misses (the supply's measurement, the winding's resistance, the back-EMF
+constant). Two structures (``BankOptions.structure``):
+
+* ``voltage`` (the default): all four filters on the winding model, each reading three of
+  BA, SWS, WA and the current. A bridge fault (a stuck duty, an open winding) makes all
+  four inconsistent: no sensor fits, and the actuator test names the actuator.
+* ``force``: the ``ba``, ``wa``, ``defl`` filters take the force from the measured current
+  (the ECU filter's own 5-state structure) and read two of BA, SWS, WA; only ``current`` is
+  on the winding model.
+
+``full`` reads [BA, SWS, WA] with the force from the current: the ECU's filter with its
+gain fixed (the detection the analysis compares with).
+
+Each filter's gain is the steady-state one at the design road (``DesignOptions.akf_q_grade``
+at the nominal speed). Its innovation covariance at any road intensity q is then exact
+without a Riccati step per tick: the error dynamics are linear in their noises, so
+S(q) = q S_road + S_noise, plus var_F S_force for a white force error of variance var_F
+(the screw efficiency's band, ``firmware.diag.fdi``).
+
+Error dynamics of a filter (Phi, H, K; prediction e-, innovation nu):
+e-_{t+1} = Phi (I - K H) e-_t + b f_t, nu_t = H e-_t + d f_t, for a disturbance f that
+enters the state through b and the measurement through d (``fault_input`` gives them for a
+sensor's fault; the force error: b = gamma - Phi K D, d = D).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import expm, solve_discrete_are, solve_discrete_lyapunov
+
+from calib.iso8608 import GRADE_GQ_M3
+from calib.model import van_loan_integral
+from calib.options import NOMINAL_SPEED_MPS, DesignOptions
+from calib.vehicle import VehicleConfig
+
+SENSORS = ("ba", "wa", "defl", "current")       # the sensors a filter can be blind to
+READS = {"ba": ("defl", "wa"), "wa": ("ba", "defl"), "defl": ("ba", "wa"),
+         "current": ("ba", "defl", "wa"), "full": ("ba", "defl", "wa")}
+# the "voltage" structure: every bank filter on the winding model, the current a measurement
+READS_VOLTAGE = {"ba": ("defl", "wa", "current"), "wa": ("ba", "defl", "current"),
+                 "defl": ("ba", "wa", "current"), "current": ("ba", "defl", "wa"),
+                 "full": ("ba", "defl", "wa")}
+
+
+@dataclass(frozen=True)
+class BankOptions:
+    """The bank's design choices (docs/diagnostics.md, "Isolability", says why these)."""
+    structure: str = "voltage"   # "voltage": every filter on the winding model, the current a
+    #                              measurement; "force": the current as the force input of the
+    #                              three sensor filters (the ECU filter's own structure)
+    offset_walk_v: float = 0.1   # the random walk of the voltage the winding model misses, V/sqrt(s)
+    window: int = 1000           # the tests' EWMA window, ticks
+
+    def __post_init__(self):
+        if self.structure not in ("voltage", "force"):
+            raise ValueError(f"bank structure must be 'voltage' or 'force', got {self.structure!r}")
+        if not (self.offset_walk_v > 0 and math.isfinite(self.offset_walk_v)):
+            raise ValueError(f"offset walk must be positive, got {self.offset_walk_v}")
+        if not 1 <= self.window <= 100_000:
+            raise ValueError(f"window must be 1-100000 ticks, got {self.window}")
+
+
+@dataclass(frozen=True)
+class Generator:
+    """One residual generator: the filter blind to ``blind`` (``full``: to none)."""
+    blind: str
+    reads: tuple            # the measured channels, in the order of H's rows
+    phi: np.ndarray         # (n, n)
+    gamma: np.ndarray       # (n,) the known input: the force (n = 5) or the voltage (n = 7)
+    gamma_force: np.ndarray  # (n,) a force error's way into the state
+    H: np.ndarray           # (m, n)
+    D: np.ndarray           # (m,) the known input's feedthrough (the force's; 0 for n = 7)
+    D_force: np.ndarray     # (m,) a force error's feedthrough
+    K: np.ndarray           # (n, m) steady-state gain at the design road
+    r0: np.ndarray          # (m, m) measurement noise
+    q_unit: np.ndarray      # (n, n) process noise per unit road intensity
+    q_fixed: np.ndarray     # (n, n) process noise that does not scale with the road
+    S_road: np.ndarray      # (m, m) innovation covariance per unit road intensity
+    S_noise: np.ndarray     # (m, m) ... from the measurement and fixed process noise
+    S_force: np.ndarray     # (m, m) ... per unit variance of a white force error (N^2)
+    design_intensity: float  # the road intensity of the design (m^2/s^3)
+    force_per_amp: float    # K_f: a current sensor's error as a force error
+
+    @property
+    def error_phi(self) -> np.ndarray:
+        return self.phi @ (np.eye(self.phi.shape[0]) - self.K @ self.H)
+
+    def innovation_cov(self, intensity: float, var_force: float = 0.0) -> np.ndarray:
+        return intensity * self.S_road + self.S_noise + var_force * self.S_force
+
+    def fault_input(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
+        """(b, d): how an additive fault of ``sensor`` (in its own unit) enters this filter's
+        error dynamics; zeros where the filter does not read it."""
+        n, m = self.phi.shape[0], self.H.shape[0]
+        if sensor in self.reads:
+            e = np.zeros(m)
+            e[self.reads.index(sensor)] = 1.0
+            return -self.phi @ self.K @ e, e
+        if sensor == "current" and self.phi.shape[0] == 5:    # the force it takes as input
+            kf = self.force_per_amp
+            return kf * (-self.gamma + self.phi @ self.K @ self.D), -kf * self.D
+        return np.zeros(n), np.zeros(m)
+
+
+def _cov_response(a_e: np.ndarray, H: np.ndarray, b: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The innovation covariance of e+ = a_e e + b w, nu = H e + d w for unit white w."""
+    P = solve_discrete_lyapunov(a_e, np.outer(b, b))
+    return H @ P @ H.T + np.outer(d, d)
+
+
+def generators(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions = BankOptions()
+               ) -> dict[str, Generator]:
+    """The bank for this vehicle: {blind sensor (or "full"): Generator}."""
+    from calib.ecu_params import akf_continuous, akf_model
+
+    ap, sp = cfg.actuator, cfg.sensors
+    base = akf_model(cfg, opts)
+    A5, B5 = akf_continuous(cfg)
+    design_q = base.road_intensity_per_mps * NOMINAL_SPEED_MPS
+    kf = ap.force_constant_n_per_a
+    chans = {"ba": sp.body_accel, "defl": sp.susp_defl, "wa": sp.wheel_accel}
+    sig2 = {k: c.noise_std ** 2 + c.lsb ** 2 / 12.0 for k, c in chans.items()}
+    cur = sp.motor_current
+    cur_var = cur.noise_std ** 2 + cur.lsb ** 2 / 12.0
+    rows5 = {"ba": (A5[0], B5[0]), "defl": (np.array([0, 0, 1.0, -1.0, 0]), 0.0),
+             "wa": (A5[1], B5[1])}
+    sig2["current"] = cur_var
+    out = {}
+    voltage = bank.structure == "voltage"
+    for blind, reads in (READS_VOLTAGE if voltage else READS).items():
+        if blind == "current" or (voltage and blind != "full"):
+            phi, gamma, gamma_f, H7, q_unit, q_fixed = _winding_model(cfg, opts, bank, A5, B5)
+            row = {"ba": H7[0], "defl": H7[1], "wa": H7[2], "current": np.eye(7)[5]}
+            H = np.array([row[c] for c in reads])
+            D = np.zeros(len(reads))
+            D_f = np.array([B5[0] if c == "ba" else B5[1] if c == "wa" else 0.0 for c in reads])
+            r0 = np.diag([sig2[c] for c in reads])
+        else:
+            phi, gamma = base.phi, base.gamma
+            gamma_f = gamma
+            H = np.array([rows5[c][0] for c in reads])
+            D = np.array([rows5[c][1] for c in reads])
+            D_f = D
+            q_unit = base.q_unit
+            q_fixed = np.zeros((5, 5))
+            # the force from the measured current: its noise enters the measurements through D
+            r0 = np.diag([sig2[c] for c in reads]) + np.outer(D, D) * kf ** 2 * cur_var
+        Q = design_q * q_unit + q_fixed
+        P = solve_discrete_are(phi.T, H.T, Q, r0)
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + r0)
+        a_e = phi @ (np.eye(phi.shape[0]) - K @ H)
+        S_road = _cov_lyap(a_e, H, q_unit)
+        S_noise = _cov_lyap(a_e, H, q_fixed + phi @ K @ r0 @ K.T @ phi.T) + r0
+        S_force = _cov_response(a_e, H, gamma_f - phi @ K @ D_f, D_f)
+        g = Generator(blind=blind, reads=reads, phi=phi, gamma=gamma, gamma_force=gamma_f,
+                      H=H, D=D, D_force=D_f, K=K, r0=r0, q_unit=q_unit, q_fixed=q_fixed,
+                      S_road=S_road, S_noise=S_noise, S_force=S_force, design_intensity=design_q,
+                      force_per_amp=kf)
+        out[blind] = g
+    return out
+
+
+def winding_continuous(cfg: VehicleConfig, A5: np.ndarray, B5: np.ndarray) -> np.ndarray:
+    """The winding model's continuous A (``_winding_model``)."""
+    ap, kf = cfg.actuator, cfg.actuator.force_constant_n_per_a
+    L, R = ap.winding_inductance_h, ap.winding_resistance_ohm
+    A = np.zeros((7, 7))
+    A[:5, :5] = A5
+    A[:5, 5] = B5 * kf
+    A[5, 5] = -R / L
+    A[5, 0], A[5, 1] = -kf / L, kf / L        # the back-EMF (K_e = K_f, the ideal screw)
+    A[5, 6] = 1.0 / L
+    return A
+
+
+def _winding_model(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions,
+                   A5: np.ndarray, B5: np.ndarray):
+    """The winding model: x = [zs_dot, zt_dot, zs, zt, zf, i, v_off], the
+    winding L di/dt = V + v_off - R i - K_e (zs_dot - zt_dot) driven by the voltage the bridge
+    applies, the force K_f i, and v_off a random walk that takes up what the voltage model
+    misses (the supply's measurement, the winding's resistance, the back-EMF constant). Returns
+    (phi, gamma_voltage, gamma_force, H, q_unit, q_fixed)."""
+    sup = cfg.sensors.supply_voltage
+    dt = opts.dt_s
+    A = winding_continuous(cfg, A5, B5)
+    n = A.shape[0]
+    B = np.zeros(n)
+    B[5] = 1.0 / cfg.actuator.winding_inductance_h
+    phi = expm(A * dt)
+    gamma = _zoh(A, B, dt)
+    gamma_f = _zoh(A, np.append(B5, [0.0, 0.0]), dt)
+    H = np.array([A[0], [0, 0, 1.0, -1.0, 0, 0, 0], A[1]])
+    e = np.zeros(n)
+    e[4] = 1.0
+    q_unit = van_loan_integral(A.T, np.outer(e, e), dt)
+    # the voltage the ECU knows: the supply's sample noise (taken as white, though a sample
+    # holds for 10 ms); the offset's walk
+    v_var = sup.noise_std ** 2 + sup.lsb ** 2 / 12.0
+    e[:] = 0.0
+    e[6] = 1.0
+    q_fixed = np.outer(gamma, gamma) * v_var + van_loan_integral(
+        A.T, np.outer(e, e), dt) * bank.offset_walk_v ** 2
+    return phi, gamma, gamma_f, H, q_unit, q_fixed
+
+
+def _cov_lyap(a_e: np.ndarray, H: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    P = solve_discrete_lyapunov(a_e, Q)
+    return H @ P @ H.T
+
+
+def _zoh(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
+    n = A.shape[0]
+    M = np.zeros((n + 1, n + 1))
+    M[:n, :n] = A
+    M[:n, n] = B
+    return np.ascontiguousarray(expm(M * dt)[:n, n])
+
+
+def road_intensity(cfg: VehicleConfig, opts: DesignOptions, grade: str, speed: float) -> float:
+    """The white-noise intensity driving the road state for ``grade`` at ``speed``."""
+    from calib.ecu_params import akf_model
+    base = akf_model(cfg, opts)
+    return base.road_intensity_per_mps * speed * GRADE_GQ_M3[grade] / GRADE_GQ_M3[opts.akf_q_grade]
+
+
+def sensor_sigma(cfg: VehicleConfig, sensor: str) -> float:
+    """One sample's noise std of a sensor, its quantisation included."""
+    c = getattr(cfg.sensors, {"ba": "body_accel", "wa": "wheel_accel", "defl": "susp_defl",
+                              "current": "motor_current"}[sensor])
+    return math.sqrt(c.noise_std ** 2 + c.lsb ** 2 / 12.0)
