@@ -146,6 +146,8 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
     ba, wa, defl = S.adc.value[adc.BA], S.adc.value[adc.WA], S.adc.value[adc.DEFL]
     i_meas, speed = S.adc.value[adc.CUR], S.adc.value[adc.SPEED]
     faults |= inp.link_faults
+    if adc.unsettled(P.adc, S.adc):      # no sample this tick, or recovering from one
+        faults |= safety.FAULT_SAMPLE
     # 2. AKF: predict with the force from the measured current, correct with [BA, SWS, WA]
     #    (uses 1 and the grade's G_q) -> estimate S.akf.x; a non-finite one is reset
     road_intensity = akf.road_per_mps(P, S.grade.gq) * speed
@@ -357,11 +359,14 @@ def new_cycle(Sa) -> None:
 
 
 def _counts(c) -> int:
-    """An input's counts as the record holds them: -1 where there is no valid sample (None,
-    not an int, a bool, or an int beyond any channel's range: the ADC stage's fault)."""
+    """An input's counts as the record holds them: ``adc.NO_SAMPLE`` for None (no sample),
+    ``adc.INVALID`` where it is no valid sample (not an int, a bool, or an int beyond any
+    channel's range: the ADC stage's fault)."""
+    if c is None:
+        return adc.NO_SAMPLE
     if isinstance(c, int) and not isinstance(c, bool) and 0 <= c < 1 << 31:
         return c
-    return -1
+    return adc.INVALID
 
 
 class Ecu:

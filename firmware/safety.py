@@ -72,6 +72,8 @@ FAULT_UNKNOWN_ID = 1 << 14
 FAULT_RANGE = 1 << 15             # a signal outside its declared range
 FAULT_SUPPLY = 1 << 16            # the supply voltage outside its operating range (fail-safe;
 #                                   on the bus: ECU_STATUS.FAULT_SUPPLY)
+FAULT_SAMPLE = 1 << 17            # a tick without a sensor sample, and the ADC's recovery after
+#                                   it (fail-safe; no DTC of its own: the frame's names the cause)
 
 FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
                FAULT_AUTH: "auth", FAULT_PLAUSIBILITY: "plausibility", FAULT_RATE: "rate",
@@ -79,14 +81,14 @@ FAULT_NAMES = {**{bit: name for name, bit in adc.FAULT_BIT.items()},
                FAULT_INVALID_REQUEST: "invalid_request", FAULT_DLC: "dlc",
                FAULT_CHECKSUM: "checksum", FAULT_COUNTER: "counter",
                FAULT_TIMEOUT: "timeout", FAULT_UNKNOWN_ID: "unknown_id",
-               FAULT_RANGE: "range", FAULT_SUPPLY: "supply"}
+               FAULT_RANGE: "range", FAULT_SUPPLY: "supply", FAULT_SAMPLE: "sample"}
 
 # faults that make active control unsafe: every measured channel, a diverged estimator, a
 # sensor or actuator the model-based tests found implausible, a supply out of its range
 SAFETY_RELEVANT = (adc.FAULT_BIT["body_accel"] | adc.FAULT_BIT["wheel_accel"]
                    | adc.FAULT_BIT["susp_defl"] | adc.FAULT_BIT["motor_current"]
                    | adc.FAULT_BIT["speed"] | FAULT_NONFINITE_ESTIMATE | FAULT_PLAUSIBILITY
-                   | FAULT_SUPPLY)
+                   | FAULT_SUPPLY | FAULT_SAMPLE)
 
 
 def fault_names(word: int) -> list[str]:

@@ -267,7 +267,7 @@ def test_every_message_and_signal_is_commented_and_enumerations_have_value_table
 
 
 def test_the_fault_word_is_one_named_signal_per_bit_where_it_always_was():
-    """ECU_STATUS: bits 0-15 of the fault word in payload bits 8-23, bit 16 in bit 48, each
+    """ECU_STATUS: bits 0-15 of the fault word in payload bits 8-23, bits 16-17 in 48-49, each
     its own FAULT_<name> signal with a value table (the bytes of the 16-bit FAULTS word and
     SUPPLY_FAULT it replaced)."""
     from hil.transport.codec import FAULT_SIGNALS, fault_signals, fault_word
@@ -278,11 +278,11 @@ def test_the_fault_word_is_one_named_signal_per_bit_where_it_always_was():
     for bit, name in FAULT_SIGNALS.items():
         i = bit.bit_length() - 1
         sig = status.get_signal_by_name(name)
-        assert (sig.start, sig.length) == ((8 + i if i < 16 else 48), 1), name
+        assert (sig.start, sig.length) == ((8 + i if i < 16 else 32 + i), 1), name
         assert {int(k): str(v) for k, v in sig.choices.items()} == {0: "ok", 1: "fault"}
         data = CODEC.encode("ECU_STATUS", fault_signals(bit))
         word = int.from_bytes(data, "little") & ~(0xFF << 56) & ~(0xF << 52)
-        assert word == 1 << (8 + i if i < 16 else 48), name
+        assert word == 1 << (8 + i if i < 16 else 32 + i), name
         assert fault_word(CODEC.decode(status.frame_id, data).signals) == bit
     every = sum(FAULT_SIGNALS)
     assert fault_word(fault_signals(every)) == every

@@ -249,7 +249,8 @@ def test_every_fault_bit_and_test_has_a_dtc():
     assert len(set(codes)) == len(codes) and all(0 < c < 1 << 24 for c in codes)
     bits = {d.bit for d in dtc.DTCS if d.source == dtc.SRC_FAULT}
     assert bits == set(safety.FAULT_NAMES) - {safety.FAULT_PLAUSIBILITY,   # (their tests
-                                              safety.FAULT_SUPPLY}          # have one)
+                                              safety.FAULT_SUPPLY,          # have one; a
+                                              safety.FAULT_SAMPLE}          # frame's names it)
     assert {d.bit for d in dtc.DTCS if d.source == dtc.SRC_TEST} == set(range(fdi.N_TESTS))
 
 

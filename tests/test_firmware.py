@@ -34,8 +34,8 @@ def raw(**over):
 
 
 def sample(S, counts, explained=0):
-    """adc.sample on the state's ADC (the inputs as the ECU takes them: -1 where a value is
-    no count) with the SI values by channel name."""
+    """adc.sample on the state's ADC (the inputs as the ECU takes them: ``firmware.ecu._counts``)
+    with the SI values by channel name."""
     c = np.array([_counts(v) for v in counts], dtype=np.int64)
     faults = adc.sample(PR["adc"], S["adc"], c, explained)
     return dict(zip(adc.CHANNELS, S["adc"]["value"].tolist())), faults
@@ -50,12 +50,40 @@ def test_adc_conversion_and_plausibility():
     assert faults == 0
     ch = P.adc.body_accel
     assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)
-    for bad in (-1, ch.full_scale + 1, float("nan"), None, 12.5, True):
+    for bad in (-1, ch.full_scale + 1, float("nan"), 12.5, True):
         _, S = records()
         sample(S, raw())
         v, faults = sample(S, raw(body_accel=bad))
         assert faults == adc.FAULT_BIT["body_accel"], bad
         assert v["body_accel"] == pytest.approx(ch.range_min + (ch.full_scale // 2) * ch.lsb)  # held
+
+
+def test_adc_no_sample_is_not_a_channel_fault():
+    """A tick without a sample (a lost or late frame: None) holds the value and is not
+    measured, but names no circuit fault (the frame checks name it) and leaves the fault
+    state and its recovery count as they were."""
+    _, S = records()
+    v0, _ = sample(S, raw(body_accel=100))
+    v, faults = sample(S, raw(body_accel=None, susp_defl=None))
+    assert faults == 0 and v["body_accel"] == v0["body_accel"]
+    assert not adc.measured(S["adc"], adc.BA) and adc.held(S["adc"], adc.BA)
+    assert adc.measured(S["adc"], adc.WA) and adc.unsettled(PR["adc"], S["adc"])
+    assert adc.good_count(S["adc"], adc.BA) == -1
+    sample(S, raw(body_accel=-5))                     # a fault, then no sample: still one
+    _, faults = sample(S, raw(body_accel=None))
+    assert faults == adc.FAULT_BIT["body_accel"]
+    for k in range(P.adc.recover_ticks):              # recovery counts good samples only
+        _, faults = sample(S, raw())
+        if k == P.adc.recover_ticks // 2:
+            _, f2 = sample(S, raw(body_accel=None))
+            assert f2 == adc.FAULT_BIT["body_accel"]
+    assert faults == 0
+    # the fail-safe hysteresis after a tick without a sample: recover_ticks samples
+    sample(S, raw(speed=None))
+    for k in range(P.adc.recover_ticks):
+        assert adc.unsettled(PR["adc"], S["adc"])
+        sample(S, raw())
+    assert not adc.unsettled(PR["adc"], S["adc"])
 
 
 def test_adc_stuck_at_rail_and_recovery_hysteresis():

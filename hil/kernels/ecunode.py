@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from firmware import adc
 from firmware import params as fp
 from firmware.kernels import njit
 from firmware.safety import FAULT_AUTH, FAULT_TIMEOUT
@@ -151,7 +152,7 @@ def tick(Ea, M, F, FAULT_BITS, RX, SEC, crypto, P, T, S, I, O, sample, c0, c1, c
     if sample:
         inp.counts[0], inp.counts[1], inp.counts[2], inp.counts[3] = c0, c1, c2, c3
     else:
-        inp.counts[0] = inp.counts[1] = inp.counts[2] = inp.counts[3] = -1
+        inp.counts[0] = inp.counts[1] = inp.counts[2] = inp.counts[3] = adc.NO_SAMPLE
     inp.counts[4] = speed
     inp.supply = supply
     inp.req_kind, inp.req_mode, inp.req_counter = E.req_kind, E.req_mode, E.req_id

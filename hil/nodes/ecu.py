@@ -11,7 +11,7 @@ from typing import Optional
 import numpy as np
 
 from calib.fx_tables import build_tables
-from firmware import safety
+from firmware import adc, safety
 from firmware import params as fp
 from firmware.diag import dtc, uds
 from firmware.ecu import Ecu
@@ -47,7 +47,7 @@ _RX_ROWS = {"VEHICLE_SPEED": (kb.R_SPEED, kb.M_SPEED),
             "PLANT_SUPPLY": (kb.R_SUPPLY, kb.M_SUPPLY),
             "PLANT_SENSORS": (kb.R_SENSORS, kb.M_SENSORS),
             "DRIVER_REQUEST": (kb.R_REQ, kb.M_REQ)}
-_NO_COUNTS = (-1, -1, -1, -1)
+_NO_COUNTS = (adc.NO_SAMPLE,) * 4
 _SIM_TICK, _DIAG_REQUEST = ID["SIM_TICK"], ID["DIAG_REQUEST"]
 
 
@@ -55,8 +55,9 @@ class EcuNode:
     """The firmware behind its CAN receive and transmit path, compiled
     (``hil.kernels.ecunode``: the receive table and the tick with its frames, the same
     functions the compiled SIL loop runs). Frame validity is ``firmware.safety``: an invalid
-    PLANT_SENSORS frame, or a tick without one (SIM_TICK), feeds no counts (the ADC marks the
-    channels faulty, the ECU goes fail-safe the same tick), VEHICLE_SPEED times out after 3
+    PLANT_SENSORS frame, or a tick without one (SIM_TICK), feeds no counts (no sample: the
+    channels hold their values, the ECU goes fail-safe the same tick, and the frame's own
+    fault names it, not the sensors' circuits), VEHICLE_SPEED times out after 3
     periods and is rate-supervised (a copy sooner than half its period is not used), an
     invalid DRIVER_REQUEST is ignored; every frame fault is reported in the fault word.
     ECU_STATUS carries the OR of the fault words since the last ECU_STATUS, so a one-tick
