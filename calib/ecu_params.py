@@ -12,56 +12,26 @@ import math
 from dataclasses import replace
 from pathlib import Path
 import numpy as np
-from scipy.linalg import expm
 
 from calib import cache
 from calib.control_design import (_feedback_designs, comprehensive_gain, damping_scale,
                                    default_gains_path)
 from calib.errors import ConfigError
+from calib import fdi_bank
 from calib.fdi_design import fdi_params
-from calib.iso8608 import CONVENTIONS, DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, N0_PER_M
-from calib.model import (linear_model, mechanics, paper_thresholds, state_covariance,
-                         van_loan_integral)
+from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_intensity_per_mps
+from calib.model import (filter_discrete, linear_model, paper_thresholds, state_covariance,
+                         zoh_input)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from calib.vehicle import VehicleConfig
 from firmware import params as fp
 
 
-def _zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
-    n = A.shape[0]
-    M = np.zeros((n + 1, n + 1))
-    M[:n, :n] = A
-    M[:n, n] = B
-    return expm(M * dt)[:n, n]
-
-
-def akf_continuous(cfg: VehicleConfig, speed: float = NOMINAL_SPEED_MPS
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The filter's continuous model: (A, B_force), the 5-state quarter car with the
-    screw's viscous friction beside the damper and the road pole at ``speed``."""
-    vp, ap = cfg.vehicle, cfg.actuator
-    A4, b_force, b_road = mechanics(vp)
-    b = ap.viscous_friction_n_s_per_m
-    A = np.zeros((5, 5))
-    A[:4, :4] = A4
-    A[0, 0] -= b / vp.sprung_mass_kg
-    A[0, 1] += b / vp.sprung_mass_kg
-    A[1, 0] += b / vp.unsprung_mass_kg
-    A[1, 1] -= b / vp.unsprung_mass_kg
-    A[:4, 4] = b_road
-    A[4, 4] = -2.0 * math.pi * DEFAULT_CUTOFF_N_PER_M * speed
-    return A, np.append(b_force, 0.0)
-
-
 def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") -> fp.AkfParams:
     vp, ap = cfg.vehicle, cfg.actuator
-    A, B = akf_continuous(cfg)
     dt = opts.dt_s
-    phi = expm(A * dt)
-    gamma = np.ascontiguousarray(_zoh_input(A, B, dt))   # (a column slice otherwise)
-    e5 = np.eye(5)[4]
-    q_unit = van_loan_integral(A.T, np.outer(e5, e5), dt)
-    road_int = (2 * math.pi * N0_PER_M) ** 2 * CONVENTIONS[convention] * GRADE_GQ_M3[opts.akf_q_grade]
+    A, B, phi, gamma, q_unit = filter_discrete(cfg, dt)
+    road_int = road_intensity_per_mps(GRADE_GQ_M3[opts.akf_q_grade], convention)
     rows_H = [A[0], np.array([0, 0, 1.0, -1.0, 0]), A[1]]
     rows_D = [1.0 / vp.sprung_mass_kg, 0.0, -1.0 / vp.unsprung_mass_kg]
     chans = [cfg.sensors.body_accel, cfg.sensors.susp_defl, cfg.sensors.wheel_accel]
@@ -81,8 +51,7 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     # has them; an airborne tyre (where it can lift off) and a current beyond its sensor's
     # range as unknown forces of the size of the static load and of that current's force
     nl, ba_ch, wa_ch = cfg.nonlinear, cfg.sensors.body_accel, cfg.sensors.wheel_accel
-    gamma_wheel = np.ascontiguousarray(_zoh_input(A, np.array([0, 1 / vp.unsprung_mass_kg,
-                                                               0, 0, 0.0]), dt))
+    gamma_wheel = zoh_input(A, np.array([0, 1 / vp.unsprung_mass_kg, 0, 0, 0.0]), dt)
     tyre_sigma = math.hypot(vp.sprung_mass_kg * math.hypot(ba_ch.noise_std, ba_ch.lsb / math.sqrt(12)),
                             vp.unsprung_mass_kg * math.hypot(wa_ch.noise_std, wa_ch.lsb / math.sqrt(12)))
     cur_range = max(abs(cur.range_min), abs(cur.range_max))
@@ -107,7 +76,7 @@ def grade_band_variance(speed: float, dt: float, hp_a: float, lp_a: float,
     """Variance of the band-passed road velocity for a unit-G_q road at ``speed``: the exact
     AR(1) road at the tick, differenced, high-passed, low-passed (frequency-domain integral)."""
     lam = 2 * math.pi * DEFAULT_CUTOFF_N_PER_M * speed
-    a2 = (2 * math.pi * N0_PER_M) ** 2 * CONVENTIONS[convention] * speed
+    a2 = road_intensity_per_mps(1.0, convention) * speed
     phi = math.exp(-lam * dt)
     q = a2 * (1 - phi * phi) / (2 * lam)
     w = np.concatenate([[0.0], np.geomspace(1e-8, math.pi, 6000)])  # resolves the road pole
@@ -177,7 +146,8 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
     adc = fp.AdcParams(chan(sp.body_accel), chan(sp.wheel_accel), chan(sp.susp_defl),
                        chan(sp.motor_current), chan(sp.speed), rail_ticks=opts.adc_rail_ticks,
                        recover_ticks=opts.adc_recover_ticks,
-                       current_rail_mps=current_rail_mps(cfg, opts))
+                       current_rail_mps=current_rail_mps(cfg, opts),
+                       defl_rail_margin_m=opts.adc_defl_rail_margin_m)
     plant = fp.PlantParams(vp.sprung_mass_kg, vp.unsprung_mass_kg, vp.spring_stiffness_n_per_m,
                            vp.damping_n_s_per_m, vp.tire_stiffness_n_per_m,
                            ap.viscous_friction_n_s_per_m, ap.force_constant_n_per_a,
@@ -218,7 +188,8 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
                         grade=grade_params(cfg, opts), modes=modes, control=control,
                         actuator=actuator, akf_q_follows_grade=opts.akf_q_follows_grade,
                         akf_q_gq_nominal=GRADE_GQ_M3[opts.akf_q_grade],
-                        fdi=fdi_params(cfg, opts), software_version=SOFTWARE_VERSION,
+                        fdi=fdi_params(cfg, opts), bank=fdi_bank.bank_params(cfg, opts),
+                        software_version=SOFTWARE_VERSION,
                         calibration_sha256=bytes.fromhex(inputs_digest(cfg, gains_file, opts)),
                         vehicle_sha256=_vehicle_sha256(cfg))
 

@@ -4,11 +4,11 @@ j cannot make the filter that does not read j inconsistent; every filter that tu
 inconsistent clears the sensor it is blind to, and j is isolated once all the others are.
 
 The winding model (``_winding_model``): x = [zs_dot, zt_dot, zs, zt, zf, i, v_off], the
-5-state quarter car of the ECU's filter (``calib.ecu_params.akf_continuous``: the screw's
+5-state quarter car of the ECU's filter (``calib.model.filter_continuous``: the screw's
 friction, the road state) with the winding L di/dt = V + v_off - R i - K_e (zs_dot - zt_dot)
 driven by the voltage the bridge applies, the force K_f i, and v_off a random walk for what
 the voltage model misses (the supply's measurement, the winding's resistance, the back-EMF
-constant). Two structures (``BankOptions.structure``):
+constant). Two structures (``DesignOptions.fdi_bank_structure``):
 
 * ``voltage`` (the default): all four filters on the winding model, each reading three of
   BA, SWS, WA and the current. A bridge fault (a stuck duty, an open winding) makes all
@@ -40,8 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm, solve_discrete_are, solve_discrete_lyapunov
 
-from calib.iso8608 import GRADE_GQ_M3
-from calib.model import van_loan_integral
+from calib.iso8608 import GRADE_GQ_M3, road_intensity_per_mps
+from calib.model import filter_continuous, filter_discrete, van_loan_integral, zoh_input
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from calib.vehicle import VehicleConfig
 
@@ -52,24 +52,6 @@ READS = {"ba": ("defl", "wa"), "wa": ("ba", "defl"), "defl": ("ba", "wa"),
 READS_VOLTAGE = {"ba": ("defl", "wa", "current"), "wa": ("ba", "defl", "current"),
                  "defl": ("ba", "wa", "current"), "current": ("ba", "defl", "wa"),
                  "full": ("ba", "defl", "wa")}
-
-
-@dataclass(frozen=True)
-class BankOptions:
-    """The bank's design choices (docs/diagnostics.md, "Isolability", says why these)."""
-    structure: str = "voltage"   # "voltage": every filter on the winding model, the current a
-    #                              measurement; "force": the current as the force input of the
-    #                              three sensor filters (the ECU filter's own structure)
-    offset_walk_v: float = 0.1   # the random walk of the voltage the winding model misses, V/sqrt(s)
-    window: int = 1000           # the tests' EWMA window, ticks
-
-    def __post_init__(self):
-        if self.structure not in ("voltage", "force"):
-            raise ValueError(f"bank structure must be 'voltage' or 'force', got {self.structure!r}")
-        if not (self.offset_walk_v > 0 and math.isfinite(self.offset_walk_v)):
-            raise ValueError(f"offset walk must be positive, got {self.offset_walk_v}")
-        if not 1 <= self.window <= 100_000:
-            raise ValueError(f"window must be 1-100000 ticks, got {self.window}")
 
 
 @dataclass(frozen=True)
@@ -120,15 +102,24 @@ def _cov_response(a_e: np.ndarray, H: np.ndarray, b: np.ndarray, d: np.ndarray) 
     return H @ P @ H.T + np.outer(d, d)
 
 
-def generators(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions = BankOptions()
-               ) -> dict[str, Generator]:
-    """The bank for this vehicle: {blind sensor (or "full"): Generator}."""
-    from calib.ecu_params import akf_continuous, akf_model
+def check_options(opts: DesignOptions) -> None:
+    """The bank's design options, each one clear error."""
+    if opts.fdi_bank_structure not in ("voltage", "force"):
+        raise ValueError(f"fdi_bank_structure must be 'voltage' or 'force', "
+                         f"got {opts.fdi_bank_structure!r}")
+    if not (opts.fdi_bank_offset_walk_v > 0 and math.isfinite(opts.fdi_bank_offset_walk_v)):
+        raise ValueError(f"fdi_bank_offset_walk_v must be positive, got "
+                         f"{opts.fdi_bank_offset_walk_v}")
+    if not 1 <= opts.fdi_bank_window <= 100_000:
+        raise ValueError(f"fdi_bank_window must be 1-100000 ticks, got {opts.fdi_bank_window}")
 
+
+def generators(cfg: VehicleConfig, opts: DesignOptions) -> dict[str, Generator]:
+    """The bank for this vehicle: {blind sensor (or "full"): Generator}."""
+    check_options(opts)
     ap, sp = cfg.actuator, cfg.sensors
-    base = akf_model(cfg, opts)
-    A5, B5 = akf_continuous(cfg)
-    design_q = base.road_intensity_per_mps * NOMINAL_SPEED_MPS
+    A5, B5, phi5, gamma5, q_unit5 = filter_discrete(cfg, opts.dt_s)
+    design_q = road_intensity_per_mps(GRADE_GQ_M3[opts.akf_q_grade]) * NOMINAL_SPEED_MPS
     kf = ap.force_constant_n_per_a
     chans = {"ba": sp.body_accel, "defl": sp.susp_defl, "wa": sp.wheel_accel}
     sig2 = {k: c.noise_std ** 2 + c.lsb ** 2 / 12.0 for k, c in chans.items()}
@@ -138,22 +129,22 @@ def generators(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions = Bank
              "wa": (A5[1], B5[1])}
     sig2["current"] = cur_var
     out = {}
-    voltage = bank.structure == "voltage"
+    voltage = opts.fdi_bank_structure == "voltage"
     for blind, reads in (READS_VOLTAGE if voltage else READS).items():
         if blind == "current" or (voltage and blind != "full"):
-            phi, gamma, gamma_f, H7, q_unit, q_fixed = _winding_model(cfg, opts, bank, A5, B5)
+            phi, gamma, gamma_f, H7, q_unit, q_fixed = _winding_model(cfg, opts, A5, B5)
             row = {"ba": H7[0], "defl": H7[1], "wa": H7[2], "current": np.eye(7)[5]}
             H = np.array([row[c] for c in reads])
             D = np.zeros(len(reads))
             D_f = np.array([B5[0] if c == "ba" else B5[1] if c == "wa" else 0.0 for c in reads])
             r0 = np.diag([sig2[c] for c in reads])
         else:
-            phi, gamma = base.phi, base.gamma
+            phi, gamma = phi5, gamma5
             gamma_f = gamma
             H = np.array([rows5[c][0] for c in reads])
             D = np.array([rows5[c][1] for c in reads])
             D_f = D
-            q_unit = base.q_unit
+            q_unit = q_unit5
             q_fixed = np.zeros((5, 5))
             # the force from the measured current: its noise enters the measurements through D
             r0 = np.diag([sig2[c] for c in reads]) + np.outer(D, D) * kf ** 2 * cur_var
@@ -185,8 +176,7 @@ def winding_continuous(cfg: VehicleConfig, A5: np.ndarray, B5: np.ndarray) -> np
     return A
 
 
-def _winding_model(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions,
-                   A5: np.ndarray, B5: np.ndarray):
+def _winding_model(cfg: VehicleConfig, opts: DesignOptions, A5: np.ndarray, B5: np.ndarray):
     """The winding model: x = [zs_dot, zt_dot, zs, zt, zf, i, v_off], the
     winding L di/dt = V + v_off - R i - K_e (zs_dot - zt_dot) driven by the voltage the bridge
     applies, the force K_f i, and v_off a random walk that takes up what the voltage model
@@ -199,8 +189,8 @@ def _winding_model(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions,
     B = np.zeros(n)
     B[5] = 1.0 / cfg.actuator.winding_inductance_h
     phi = expm(A * dt)
-    gamma = _zoh(A, B, dt)
-    gamma_f = _zoh(A, np.append(B5, [0.0, 0.0]), dt)
+    gamma = zoh_input(A, B, dt)
+    gamma_f = zoh_input(A, np.append(B5, [0.0, 0.0]), dt)
     H = np.array([A[0], [0, 0, 1.0, -1.0, 0, 0, 0], A[1]])
     e = np.zeros(n)
     e[4] = 1.0
@@ -211,8 +201,17 @@ def _winding_model(cfg: VehicleConfig, opts: DesignOptions, bank: BankOptions,
     e[:] = 0.0
     e[6] = 1.0
     q_fixed = np.outer(gamma, gamma) * v_var + van_loan_integral(
-        A.T, np.outer(e, e), dt) * bank.offset_walk_v ** 2
+        A.T, np.outer(e, e), dt) * opts.fdi_bank_offset_walk_v ** 2
     return phi, gamma, gamma_f, H, q_unit, q_fixed
+
+
+def _open_phi(cfg: VehicleConfig, opts: DesignOptions) -> np.ndarray:
+    """The winding model's transition with the bridge open: no current flows (the winding's
+    row is zero, so the current state stays at the zero the filter sets) and the car moves
+    without the actuator's force."""
+    A = winding_continuous(cfg, *filter_continuous(cfg))
+    A[5, :] = 0.0
+    return expm(A * opts.dt_s)
 
 
 def _cov_lyap(a_e: np.ndarray, H: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -220,19 +219,9 @@ def _cov_lyap(a_e: np.ndarray, H: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return H @ P @ H.T
 
 
-def _zoh(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
-    n = A.shape[0]
-    M = np.zeros((n + 1, n + 1))
-    M[:n, :n] = A
-    M[:n, n] = B
-    return np.ascontiguousarray(expm(M * dt)[:n, n])
-
-
 def road_intensity(cfg: VehicleConfig, opts: DesignOptions, grade: str, speed: float) -> float:
     """The white-noise intensity driving the road state for ``grade`` at ``speed``."""
-    from calib.ecu_params import akf_model
-    base = akf_model(cfg, opts)
-    return base.road_intensity_per_mps * speed * GRADE_GQ_M3[grade] / GRADE_GQ_M3[opts.akf_q_grade]
+    return road_intensity_per_mps(GRADE_GQ_M3[grade]) * speed
 
 
 def sensor_sigma(cfg: VehicleConfig, sensor: str) -> float:
@@ -240,3 +229,29 @@ def sensor_sigma(cfg: VehicleConfig, sensor: str) -> float:
     c = getattr(cfg.sensors, {"ba": "body_accel", "wa": "wheel_accel", "defl": "susp_defl",
                               "current": "motor_current"}[sensor])
     return math.sqrt(c.noise_std ** 2 + c.lsb ** 2 / 12.0)
+
+
+def bank_params(cfg: VehicleConfig, opts: DesignOptions):
+    """The firmware's bank (``firmware.params.BankParams``): the voltage structure's four
+    filters, filter k blind to ``SENSORS[k]``."""
+    from calib.fdi_design import chi2_level
+    from firmware import params as fp
+
+    if opts.fdi_bank_structure != "voltage":
+        raise ValueError("the firmware's bank runs the voltage structure only")
+    gens = [generators(cfg, opts)[k] for k in SENSORS]
+    chan = {"ba": 0, "defl": 1, "wa": 2, "current": 3}
+    w = opts.fdi_bank_window
+    stack = lambda f: np.ascontiguousarray(np.array([f(g) for g in gens], dtype=float))  # noqa: E731
+    return fp.BankParams(
+        phi=stack(lambda g: g.phi), phi_open=stack(lambda g: _open_phi(cfg, opts)),
+        gamma=stack(lambda g: g.gamma),
+        gamma_force=stack(lambda g: g.gamma_force), D_force=stack(lambda g: g.D_force),
+        H=stack(lambda g: g.H),
+        K=stack(lambda g: g.K), reads=tuple(chan[c] for g in gens for c in g.reads),
+        S_road=stack(lambda g: g.S_road), S_noise=stack(lambda g: g.S_noise),
+        S_force=stack(lambda g: g.S_force), lam=2.0 / (w + 1),
+        level=chi2_level(3 * w, opts.fdi_false_alarm),
+        confirm_ticks=int(round(opts.fdi_bank_confirm_s / opts.dt_s)),
+        act_ticks=int(round(opts.fdi_bank_actuator_s / opts.dt_s)),
+        decide_ticks=int(round(opts.fdi_bank_decide_s / opts.dt_s)))

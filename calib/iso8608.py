@@ -42,3 +42,9 @@ def road_noise_gain(gq_m3: float, speed_mps: float, convention: str = "iso") -> 
     """Gain on unit-intensity white noise in time of Eq. (1) at constant speed:
     2*pi*n0*sqrt(kappa*G_q*v)."""
     return 2.0 * math.pi * N0_PER_M * math.sqrt(convention_factor(convention) * gq_m3 * speed_mps)
+
+
+def road_intensity_per_mps(gq_m3: float, convention: str = "iso") -> float:
+    """The intensity of the white noise driving the road state per m/s of speed:
+    (2 pi n0)^2 kappa G_q (the square of ``road_noise_gain`` over the speed)."""
+    return (2 * math.pi * N0_PER_M) ** 2 * CONVENTIONS[convention] * gq_m3

@@ -17,6 +17,7 @@ from scipy.linalg import expm, solve_continuous_lyapunov
 
 from calib.errors import ConfigError
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_noise_gain
+from calib.options import NOMINAL_SPEED_MPS
 from calib.vehicle import GRAVITY_MPS2, VehicleConfig, VehicleParams
 
 if TYPE_CHECKING:                       # (annotations only)
@@ -264,3 +265,38 @@ def check_plausible(cfg: VehicleConfig, path) -> None:
                           f"{ap.force_constant_n_per_a:.4g} N/A x current limit "
                           f"{ap.current_limit_a:g} A = {peak:.4g} N) exceeds {MAX_FORCE_N} N, "
                           f"FORCE_CMD's range: check screw_lead_m and torque_constant_nm_per_a")
+
+
+def zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
+    """The discrete input vector of x' = A x + B u with u held over dt (contiguous)."""
+    n = A.shape[0]
+    M = np.zeros((n + 1, n + 1))
+    M[:n, :n] = A
+    M[:n, n] = B
+    return np.ascontiguousarray(expm(M * dt)[:n, n])
+
+
+def filter_continuous(cfg: VehicleConfig, speed: float = NOMINAL_SPEED_MPS
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The ECU filter's continuous model: (A, B_force), the 5-state quarter car with the
+    screw's viscous friction beside the damper and the road pole at ``speed``."""
+    vp, ap = cfg.vehicle, cfg.actuator
+    A4, b_force, b_road = mechanics(vp)
+    b = ap.viscous_friction_n_s_per_m
+    A = np.zeros((5, 5))
+    A[:4, :4] = A4
+    A[0, 0] -= b / vp.sprung_mass_kg
+    A[0, 1] += b / vp.sprung_mass_kg
+    A[1, 0] += b / vp.unsprung_mass_kg
+    A[1, 1] -= b / vp.unsprung_mass_kg
+    A[:4, 4] = b_road
+    A[4, 4] = -2.0 * math.pi * DEFAULT_CUTOFF_N_PER_M * speed
+    return A, np.append(b_force, 0.0)
+
+
+def filter_discrete(cfg: VehicleConfig, dt: float):
+    """The ECU filter's model at its tick: (A, B_force, phi, gamma, q_unit), q_unit the
+    discrete process noise per unit intensity of the road's white noise."""
+    A, B = filter_continuous(cfg)
+    e5 = np.eye(5)[4]
+    return A, B, expm(A * dt), zoh_input(A, B, dt), van_loan_integral(A.T, np.outer(e5, e5), dt)

@@ -29,6 +29,10 @@ class DesignOptions:
     # the lower of the bus and storage voltages, drives the current to the rail (the margin
     # covers the estimate's error and the winding's lag, L/R)
     adc_current_rail_margin: float = 0.8
+    # the deflection sensor at a rail is explained (not a fault) while the last estimate's
+    # stroke, which does not take a clipped stroke as a measurement, is within this of the
+    # rail or beyond (a stuck duty drove the stroke there: the sensor was fine)
+    adc_defl_rail_margin_m: float = 0.005
     # AKF (firmware.akf)
     use_wheel_accel: bool = True          # AKF measurement vector [BA, SWS, WA] vs [BA, SWS]
     akf_adaptive: bool = True
@@ -146,6 +150,19 @@ class DesignOptions:
     # before the grade estimate follows, so WA's gives none (a WA fault reaches the BA and
     # SWS innovations; a stuck WA its flatline test)
     fdi_nis_verdicts: tuple = (True, True, False)
+    # the isolation bank (calib.fdi_bank, firmware.diag.bank; docs/diagnostics.md,
+    # "Isolability"): every filter on the winding model ("voltage") or three with the current
+    # as their force input ("force"); the random walk of the voltage the winding model
+    # misses (V/sqrt(s)); the tests' EWMA window (ticks); after a detection a sensor is named
+    # once it alone is left and stayed so fdi_bank_confirm_s, else "not isolated" after
+    # fdi_bank_decide_s; a failed actuator test names the actuator unless the bank names BA
+    # or WA (its inputs) within fdi_bank_actuator_s
+    fdi_bank_structure: str = "voltage"
+    fdi_bank_offset_walk_v: float = 0.1
+    fdi_bank_window: int = 1000
+    fdi_bank_confirm_s: float = 0.1
+    fdi_bank_actuator_s: float = 1.0      # the actuator test's conclusion stands after this
+    fdi_bank_decide_s: float = 10.0
     # the supply's operating range as a fraction of the nominal bus voltage: for 48 V,
     # ISO 21780's range of unlimited operation begins at 36 V and its limited range ends at
     # 54 V. Below, the actuator cannot be relied on for its force; above, the bridge must be

@@ -114,7 +114,7 @@ def off_model(P, S, ba: float, wa: float):
     unknown_forces(P.akf, S.akf, lifted, not current_known, not stroke_known)
     held = 0
     for j in range(3):
-        if adc.held(S.adc, MEASURED[j]):
+        if not adc.measured(S.adc, MEASURED[j]):     # (held, or clipped at a rail)
             held |= 1 << j
     adapt = (current_known and stroke_known and not lifted
              and adc.measured(S.adc, adc.BA) and adc.measured(S.adc, adc.WA))

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from firmware import actuator, adc, akf, control, grade, modes, safety
-from firmware.diag import dtc, fdi
+from firmware.diag import bank, dtc, fdi
 from firmware.diag.fdi import SUPPLY_TESTS
 from firmware.diag.view import DiagView
 from firmware.fixedpoint import to_fixed, to_float
@@ -97,7 +97,7 @@ def state_dtype(p: EcuParams) -> np.dtype:
         ("adc", adc.STATE), ("akf", akf.state_dtype(m)),
         ("grade", grade.state_dtype(p.grade.n_blocks)), ("modes", modes.STATE),
         ("ctl", control.state_dtype(n_in, n_hidden, p.control.bp_w_out.shape[0])),
-        ("fdi", fdi.STATE), ("dtc", dtc.STATE), ("last", LAST),
+        ("fdi", fdi.STATE), ("bank", bank.STATE), ("dtc", dtc.STATE), ("last", LAST),
         ("snapshot", "i8", (len(dtc.SNAPSHOT),)),    # (the freeze frame being taken)
         ("good_counts", "i8", (4,)),                 # (stage 2b's: BA, WA, SWS, current)
         ("fx", fx.state_dtype(m)),                   # the fixed-point path's integer state
@@ -119,6 +119,7 @@ def init(p: EcuParams, P: np.ndarray | None = None, T: np.ndarray | None = None
     modes.init(c.modes, s.modes)
     control.init(c.control, s.ctl, p.modes.controllers[p.modes.initial_mode])
     fdi.init(s.fdi)
+    bank.init(s.bank)
     dtc.init(s.dtc)
     if T is not None:
         fx.init(view(T), s.fx, p.modes.controllers[p.modes.initial_mode])
@@ -193,10 +194,19 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
 def _explained_rails(P, S) -> int:
     """Stage 1's explained rails: the motor current's while the last estimate's relative
     velocity is one at which the back-EMF alone drives the current past its sensor's range
-    (``AdcParams.current_rail_mps``)."""
+    (``AdcParams.current_rail_mps``); the deflection sensor's while the last estimate's
+    stroke is at its rail (``AdcParams.defl_rail_margin_m``: the filter does not take a
+    clipped stroke as a measurement, so a sensor stuck at its rail leaves it inside)."""
+    out = 0
     if abs(S.akf.x[0] - S.akf.x[1]) >= P.adc.current_rail_mps:
-        return 1 << adc.CUR
-    return 0
+        out |= 1 << adc.CUR
+    A, d = P.adc, adc.DEFL
+    lo = A.range_min[d] + A.defl_rail_margin_m
+    hi = A.range_min[d] + A.full_scale[d] * A.lsb[d] - A.defl_rail_margin_m
+    stroke = S.akf.x[2] - S.akf.x[3]
+    if stroke <= lo or stroke >= hi:
+        out |= 1 << d
+    return out
 
 
 @njit
@@ -303,10 +313,63 @@ def _fdi(P, S, inp, defl, ba, wa, i_meas, force_meas, faults) -> int:
     good = S.good_counts
     for c in range(4):
         good[c] = adc.good_count(S.adc, c)
+    inputs_ok = not (faults & INPUT_FAULTS)
     failed = fdi.step(P, S.fdi, inp.tick, S.akf.innovation, S.akf.hph, rho, force_meas, good,
-                      defl, lifted, i_meas, ba - wa, not (faults & INPUT_FAULTS), inp.supply)
+                      defl, lifted, i_meas, ba - wa, inputs_ok, inp.supply)
+    _isolate(P, S, inp.tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed)
     return ((safety.FAULT_PLAUSIBILITY if failed & ~SUPPLY_TESTS else 0)
             | (safety.FAULT_SUPPLY if failed & SUPPLY_TESTS else 0))
+
+
+@njit
+def _isolate(P, S, tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed) -> None:
+    """Stage 2b's isolation (``firmware.diag.bank``): the filter bank's tick, then the
+    episode's decision, reported as its test's failure (the DTC that names the sensor, or
+    says none can be named)."""
+    F, B = P.fdi, S.bank
+    z = B.z
+    z[0], z[1], z[2], z[3] = ba, defl, wa, i_meas
+    held = 0
+    for bit, c in ((0, adc.BA), (1, adc.DEFL), (2, adc.WA), (3, adc.CUR)):
+        if not adc.measured(S.adc, c):
+            held |= 1 << bit
+    gq = S.grade.gq
+    q = P.akf.road_intensity_per_mps * S.adc.value[adc.SPEED] * (
+        gq / P.akf_q_gq_nominal if math.isfinite(gq) else 1.0)
+    band = abs(force_meas) * F.force_band
+    model_ok = (inputs_ok and not lifted and abs(defl) <= F.valid_defl_m
+                and abs(i_meas) < P.plant.current_limit - 5.0 * F.cur_sigma_a)
+    bank.filters(P, B, tick, z, held, S.fdi.v1, bool(S.fdi.en1), q, band * band / 12.0,
+                 model_ok, tick >= F.settle_ticks)
+    flat = 0
+    for j, t in enumerate(fdi.FLAT_TESTS):
+        if (failed >> t) & 1:
+            flat |= 1 << j
+    act = ((bank.ACT_STUCK_BIT if (failed >> fdi.T_ACT_STUCK) & 1 else 0)
+           | (bank.ACT_OPEN_BIT if (failed >> fdi.T_ACT_OPEN) & 1 else 0))
+    out = bank.decide(P, B, tick, (failed & fdi.NIS_TESTS) != 0, flat, act,
+                      _freeze_frame(S, tick))
+    if out != bank.NONE:
+        if out == bank.NOT_ISOLATED:
+            t = fdi.T_NOT_ISOLATED
+        elif out == bank.ACTUATOR_STUCK:
+            t = fdi.T_NAME_ACT_STUCK
+        elif out == bank.ACTUATOR_OPEN:
+            t = fdi.T_NAME_ACT_OPEN
+        else:
+            t = fdi.T_ISO_BA + out
+        S.fdi.failed |= 1 << t
+        S.fdi.completed |= 1 << t
+
+
+@njit
+def _freeze_frame(S, tick: int):
+    """The snapshot a failure this tick takes (``dtc.SNAPSHOT``): the last tick's view, the
+    supply as last measured."""
+    v, snap = S.last, S.snapshot
+    snap[0], snap[1], snap[2], snap[3] = tick, v.speed, v.grade, v.mode
+    snap[4], snap[5], snap[6] = v.ba_rms_mmps2, v.dtd_rms_um, supply_mv(S.fdi.supply_v)
+    return snap
 
 
 @njit
@@ -323,9 +386,9 @@ def _diagnostics(P, S, inp, out, duty, mode, g_est, faults) -> None:
     failure's snapshot: the last tick's view, the supply as last measured), and the values
     the DIDs and the next snapshot read."""
     fdi.command(P, S.fdi, duty, out.enable, out.regen)
-    v, snap = S.last, S.snapshot
-    snap[0], snap[1], snap[2], snap[3] = inp.tick, v.speed, v.grade, v.mode
-    snap[4], snap[5], snap[6] = v.ba_rms_mmps2, v.dtd_rms_um, supply_mv(S.fdi.supply_v)
+    v = S.last
+    # (a decision of the isolation bank keeps the freeze frame of its detection)
+    snap = S.bank.snapshot if S.bank.reported else _freeze_frame(S, inp.tick)
     dtc.update(S.dtc, inp.tick, faults, S.fdi.failed, S.fdi.completed, snap)
     speed = inp.counts[adc.SPEED]
     v.mode, v.grade, v.faults = mode, g_est, faults

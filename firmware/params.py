@@ -59,6 +59,9 @@ class AdcParams:
     # sensor's range: the current at a rail is then a measurement beyond the range, not a
     # fault (inf: never)
     current_rail_mps: float = float("inf")
+    # the deflection sensor's rail is explained while the last estimate's stroke is within
+    # this (m) of it or beyond (the stroke really is at the end of the sensor's range)
+    defl_rail_margin_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -190,6 +193,7 @@ class EcuParams:
     akf_q_follows_grade: bool    # AKF road intensity from the grade estimate
     akf_q_gq_nominal: float      # the G_q behind akf.road_intensity_per_mps
     fdi: "FdiParams"             # model-based fault detection
+    bank: "BankParams"           # the isolation bank (firmware.diag.bank)
     software_version: str = "0.1.0"   # DID 0xF195
     calibration_sha256: bytes = bytes(32)  # DID 0xF1A0 (the C tables header's hash)
     vehicle_sha256: bytes = bytes(32)      # DID 0xF1A1
@@ -224,3 +228,26 @@ class FdiParams:
     clip_sq: float               # a normalised square enters the EWMAs at most this large
     nis_verdicts: tuple[bool, ...]  # which innovation tests report (BA, SWS, WA)
     actuator_verdicts: bool      # the actuator test reports (off: it runs, never fails)
+
+
+@dataclass(frozen=True)
+class BankParams:
+    """The isolation bank (``firmware.diag.bank``; ``calib.fdi_bank``): four fixed-gain
+    filters on the winding model, filter k blind to sensor k (BA, WA, SWS, current)."""
+
+    phi: np.ndarray              # (4, 7, 7) state transition per filter
+    phi_open: np.ndarray         # (4, 7, 7) ... with the bridge open (no winding current)
+    gamma: np.ndarray            # (4, 7) the applied voltage's way in
+    gamma_force: np.ndarray      # (4, 7) a force's way in (the screw efficiency's correction)
+    D_force: np.ndarray          # (4, 3) ... and into the accelerations read
+    H: np.ndarray                # (4, 3, 7) measurement rows
+    K: np.ndarray                # (4, 7, 3) steady-state gains
+    reads: tuple[int, ...]       # 4 x 3: the channels each reads (0 BA, 1 SWS, 2 WA, 3 current)
+    S_road: np.ndarray           # (4, 3, 3) innovation covariance per unit road intensity
+    S_noise: np.ndarray          # (4, 3, 3) ... from the sensor and voltage noise
+    S_force: np.ndarray          # (4, 3, 3) ... per N^2 of a white force error
+    lam: float                   # the tests' EWMA weight ...
+    level: float                 # ... and level: chi2_{3W}(1 - alpha) / (3W)
+    confirm_ticks: int           # a sensor left alone this long is named
+    act_ticks: int               # the actuator test's conclusion stands after this long
+    decide_ticks: int            # else "not isolated" this long after the detection

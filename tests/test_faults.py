@@ -75,11 +75,12 @@ def test_campaign_over_the_bus_meets_the_acceptance(campaign_dir):
             assert r["recovery_ticks"] >= RECOVER_TICKS - 1, r
         if spec.plausible:
             # detected in time (sensor faults 200 ms, actuator and supply 20 ms), its DTC
-            # confirmed and read back over UDS with its snapshot, and named where the fault
-            # claims isolation
+            # confirmed and read back over UDS with its snapshot, the faulty part named where
+            # the fault claims isolation, and no healthy part named by any
             assert r["reaction_ticks"] <= spec.limit <= MAX_PLAUSIBLE_TICKS, r
             assert r["dtc"] and r["snapshot_ok"] and r["isolated"] is not False, r
             assert (r["isolated"] is None) == (spec.dtc == ""), r
+            assert r["isolation"] in ("right", "not isolated"), r     # never a healthy part
         if not spec.safety:
             assert r["failsafe_ticks"] == 0, r        # harmless faults do not stop control
         if spec.node == "app":
@@ -168,8 +169,9 @@ def test_the_judge_fails_an_ecu_that_ignores_faults(tmp_path, monkeypatch):
 def test_a_glitch_is_ridden_through_and_the_judge_fails_one_that_stops_control(
         tmp_path, monkeypatch):
     """The spike family (one sample off): +1000 counts on the body accelerometer leaves the
-    ECU driving; the same glitch to the rail (4095 counts) trips the plausibility test and
-    stops control, and the judge says so."""
+    ECU driving, and so does one sample at the rail (4095 counts: a clipped sample is no
+    measurement); the glitch at the rail for 5 samples trips the ADC's rail test and stops
+    control, and the judge says so."""
     from hil.faults import registry
     from hil.faults.spike import SensorSpike
 
@@ -179,7 +181,14 @@ def test_a_glitch_is_ridden_through_and_the_judge_fails_one_that_stops_control(
     monkeypatch.setitem(registry.BY_NAME, "ba_spike", SensorSpike(
         name="ba_spike", channel="ba", counts=4095, what="to the rail"))
     (r,) = faults.campaign(tmp_path / "rail", in_process=True, names=["ba_spike"])
-    assert not r.recovered and r.failsafe_ticks > 0 and "plausibility" in r.fault_bits
+    assert r.recovered and r.failsafe_ticks == 0 and faults.passed([r])
+    five = SensorSpike(name="ba_spike", channel="ba", counts=4095, ticks=5,
+                       what="to the rail, 5 samples")
+    monkeypatch.setitem(registry.BY_NAME, "ba_spike", five)
+    monkeypatch.setattr(registry, "FAULTS", tuple(five if f.name == "ba_spike" else f
+                                                  for f in registry.FAULTS))
+    (r,) = faults.campaign(tmp_path / "rail5", in_process=True, names=["ba_spike"])
+    assert not r.recovered and r.failsafe_ticks > 0 and "body_accel" in r.fault_bits
     assert not faults.passed([r])
 
 

@@ -10,23 +10,23 @@ import pytest
 from scipy.linalg import expm
 
 from calib import fdi_bank as fb
-from calib.ecu_params import akf_continuous
+from calib.model import filter_continuous
 from calib.options import DesignOptions
 from hil.config import default_vehicle
 from tools import isolability as iso
 
 CFG = default_vehicle()
 OPTS = DesignOptions()
-FORCE = fb.BankOptions(structure="force")
 
 
 @pytest.fixture(scope="module")
 def banks():
-    return {s: fb.generators(CFG, OPTS, fb.BankOptions(structure=s)) for s in ("voltage", "force")}
+    return {s: fb.generators(CFG, dataclasses.replace(OPTS, fdi_bank_structure=s))
+            for s in ("voltage", "force")}
 
 
 def _passive_case():
-    A5, B5 = akf_continuous(CFG)
+    A5, B5 = filter_continuous(CFG)
     q = fb.road_intensity(CFG, OPTS, "B", 20.0)
     return A5, B5, iso.Case("passive", A5, np.zeros(5), q, 0.0)
 
@@ -117,9 +117,10 @@ def test_constant_force_error_is_invisible_to_the_accelerometers(banks):
 
 
 def test_bank_options_refuse_bad_values():
-    for bad in (dict(structure="other"), dict(offset_walk_v=0.0), dict(window=0)):
+    for bad in (dict(fdi_bank_structure="other"), dict(fdi_bank_offset_walk_v=0.0),
+                dict(fdi_bank_window=0)):
         with pytest.raises(ValueError):
-            dataclasses.replace(fb.BankOptions(), **bad)
+            fb.check_options(dataclasses.replace(OPTS, **bad))
 
 
 def test_cli_refuses_bad_input(capsys):

@@ -179,27 +179,26 @@ def fault_size(kind: str, sigma: float, rms: float, mult: float) -> float | None
     return 0.0
 
 
-def analyse(cfg, opts: DesignOptions, grade: str, speed: float, progress=None,
-            bank_opts: fb.BankOptions = fb.BankOptions()) -> dict:
+def analyse(cfg, opts: DesignOptions, grade: str, speed: float, progress=None) -> dict:
     """The whole analysis: {"filters", "faults": [row, ...]} (module doc)."""
     from scipy.linalg import solve_continuous_lyapunov
 
     from calib.control_design import comfort_law
     from calib.fdi_design import chi2_level
-    from calib.ecu_params import akf_continuous
+    from calib.model import filter_continuous
     from calib.iso8608 import GRADE_GQ_M3
     from calib.model import linear_model
 
     dt = opts.dt_s
-    bank = fb.generators(cfg, opts, bank_opts)
-    A5, B5 = akf_continuous(cfg, speed)
+    bank = fb.generators(cfg, opts)
+    A5, B5 = filter_continuous(cfg, speed)
     A7 = fb.winding_continuous(cfg, A5, B5)
     q = fb.road_intensity(cfg, opts, grade, speed)
     model = linear_model(cfg.vehicle, GRADE_GQ_M3[opts.akf_q_grade], NOMINAL_SPEED_MPS)
     k_comfort = np.asarray(comfort_law(cfg, opts, model), dtype=float)
     band = 1.0 / cfg.actuator.screw_efficiency - cfg.actuator.screw_efficiency
     lam = 2.0 / (opts.fdi_nis_window + 1)
-    lam_bank = 2.0 / (bank_opts.window + 1)
+    lam_bank = 2.0 / (opts.fdi_bank_window + 1)
     alpha = opts.fdi_false_alarm
     level1 = chi2_level(opts.fdi_nis_window, alpha)
     rows = []
@@ -240,7 +239,7 @@ def analyse(cfg, opts: DesignOptions, grade: str, speed: float, progress=None,
                         A_f = A7 if gen.phi.shape[0] == 7 else A5
                         st = propagate(gen, A_f, case, sig, sensor, kind, size, ticks, dt, sigma)
                         m = gen.H.shape[0]
-                        lvl = chi2_level(m * bank_opts.window, alpha)
+                        lvl = chi2_level(m * opts.fdi_bank_window, alpha)
                         r = {"cross_ms": _ms(crossing(st[:, 0], lam_bank, lvl), dt),
                              "end": float(_ewma_end(st[:, 0], lam_bank)), "level": lvl}
                         if name == "full":          # the ECU's own tests, per channel
@@ -253,7 +252,9 @@ def analyse(cfg, opts: DesignOptions, grade: str, speed: float, progress=None,
                     if progress:
                         progress(row)
     return {"grade": grade, "speed_mps": speed, "alpha": alpha, "window": opts.fdi_nis_window,
-            "bank": dataclasses.asdict(bank_opts),
+            "bank": {k[9:]: getattr(opts, k) for k in ("fdi_bank_structure",
+                                                        "fdi_bank_offset_walk_v",
+                                                        "fdi_bank_window")},
             "conditions": conds, "faults": rows,
             "filters": {k: list(g.reads) for k, g in bank.items()}}
 
@@ -352,11 +353,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vehicle", help="vehicle TOML (default: Table 3's car)")
     ap.add_argument("--grade", default="B", help="the road's ISO 8608 grade (default B)")
     ap.add_argument("--speed", type=float, default=20.0, help="m/s (default 20)")
-    ap.add_argument("--structure", default=fb.BankOptions.structure, choices=("voltage", "force"),
-                    help="the bank's structure (calib.fdi_bank.BankOptions)")
-    ap.add_argument("--walk", type=float, default=fb.BankOptions.offset_walk_v,
+    d = DesignOptions()
+    ap.add_argument("--structure", default=d.fdi_bank_structure, choices=("voltage", "force"),
+                    help="the bank's structure (DesignOptions.fdi_bank_structure)")
+    ap.add_argument("--walk", type=float, default=d.fdi_bank_offset_walk_v,
                     help="the winding model's voltage offset walk, V/sqrt(s)")
-    ap.add_argument("--window", type=int, default=fb.BankOptions.window,
+    ap.add_argument("--window", type=int, default=d.fdi_bank_window,
                     help="the bank's EWMA window, ticks")
     ap.add_argument("--out", help="write the Markdown report here (default: stdout)")
     ap.add_argument("--json", help="write the results as JSON here")
@@ -367,11 +369,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         cfg = load_vehicle(a.vehicle) if a.vehicle else default_vehicle()
-        bank_opts = fb.BankOptions(a.structure, a.walk, a.window)
+        opts = dataclasses.replace(DesignOptions(), fdi_bank_structure=a.structure,
+                                   fdi_bank_offset_walk_v=a.walk, fdi_bank_window=a.window)
+        fb.check_options(opts)
     except (ConfigError, ValueError) as e:
         print(f"isolability: {e}", file=sys.stderr)
         return 2
-    opts = DesignOptions()
     n = [0]
 
     def progress(row):
@@ -379,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\r{n[0]} faults analysed ({row['condition']}, {row['sensor']} {row['kind']})"
               + " " * 10, end="", file=sys.stderr, flush=True)
     try:
-        res = analyse(cfg, opts, a.grade, a.speed, progress, bank_opts)
+        res = analyse(cfg, opts, a.grade, a.speed, progress)
     except AssertionError as e:              # a self-check of the analysis failed
         print(f"\nisolability: FAIL: {e}", file=sys.stderr)
         return 1

@@ -46,6 +46,23 @@ class Dtc(NamedTuple):
     safety: bool         # safety-relevant (warning indicator, fail-safe)
     what: str
 
+    @property
+    def part(self) -> str:
+        """The part this DTC tells a technician to look at: a sensor (``ba``, ``wa``,
+        ``defl``, ``current``, ``speed``), ``actuator``, ``supply``, ``network`` (a frame or
+        a message), ``ecu`` (its estimator); "" where it names none (not isolated)."""
+        return next((part for prefix, part in _PART if self.name.startswith(prefix)), "")
+
+
+# the parts a technician replaces (a DTC naming one of them wrongly is a wrong isolation)
+PARTS = ("ba", "wa", "defl", "current", "speed", "actuator", "supply")
+# a DTC's part by the prefix of its name (Dtc.part); sensor_not_isolated names none
+_PART = (("body_accel", "ba"), ("wheel_accel", "wa"), ("susp_defl", "defl"),
+         ("motor_current", "current"), ("speed", "speed"), ("actuator", "actuator"),
+         ("supply", "supply"), ("estimator", "ecu"), ("frame", "network"),
+         ("unknown_id", "network"), ("bus_rate", "network"), ("authentication", "network"),
+         ("invalid_request", "network"))
+
 
 SRC_FAULT, SRC_TEST = 0, 1
 
@@ -68,13 +85,18 @@ DTCS = (
         "motor current sensor: out of range, stuck at a rail or no sample"),
     Dtc(_c("C", 0x1005, 0x1C), "speed_circuit", SRC_FAULT, _CH["speed"], True,
         "vehicle speed: out of range or no valid frame"),
-    # plausibility against the model (innovation tests): FTB 0x29 signal invalid
-    Dtc(_c("C", 0x1001, 0x29), "body_accel_plausibility", SRC_TEST, fdi.T_NIS_BA, True,
-        "body acceleration innovation above its chi-square level"),
-    Dtc(_c("C", 0x1003, 0x29), "susp_defl_plausibility", SRC_TEST, fdi.T_NIS_SWS, True,
-        "suspension deflection innovation above its chi-square level"),
-    Dtc(_c("C", 0x1002, 0x29), "wheel_accel_plausibility", SRC_TEST, fdi.T_NIS_WA, True,
-        "wheel acceleration innovation above its chi-square level"),
+    # plausibility against the model: FTB 0x29 signal invalid. The innovation tests detect;
+    # the isolation bank names the sensor (firmware.diag.bank), or says it cannot
+    Dtc(_c("C", 0x1001, 0x29), "body_accel_plausibility", SRC_TEST, fdi.T_ISO_BA, True,
+        "body accelerometer disagrees with the model (isolated by the filter bank)"),
+    Dtc(_c("C", 0x1003, 0x29), "susp_defl_plausibility", SRC_TEST, fdi.T_ISO_SWS, True,
+        "deflection sensor disagrees with the model (isolated by the filter bank)"),
+    Dtc(_c("C", 0x1002, 0x29), "wheel_accel_plausibility", SRC_TEST, fdi.T_ISO_WA, True,
+        "wheel accelerometer disagrees with the model (isolated by the filter bank)"),
+    Dtc(_c("C", 0x1004, 0x29), "motor_current_plausibility", SRC_TEST, fdi.T_ISO_CUR, True,
+        "motor current sensor disagrees with the model (isolated by the filter bank)"),
+    Dtc(_c("C", 0x1000, 0x29), "sensor_not_isolated", SRC_TEST, fdi.T_NOT_ISOLATED, True,
+        "a sensor disagrees with the model and the filter bank cannot tell which"),
     # stuck in range (flatline): FTB 0x2A
     Dtc(_c("C", 0x1001, 0x2A), "body_accel_stuck", SRC_TEST, fdi.T_FLAT_BA, True,
         "body accelerometer stuck at one count"),
@@ -85,9 +107,9 @@ DTCS = (
     Dtc(_c("C", 0x1004, 0x2A), "motor_current_stuck", SRC_TEST, fdi.T_FLAT_CUR, True,
         "motor current sensor stuck at one count"),
     # actuator: FTB 0x71 actuator stuck, 0x13 circuit open
-    Dtc(_c("C", 0x1010, 0x71), "actuator_stuck", SRC_TEST, fdi.T_ACT_STUCK, True,
+    Dtc(_c("C", 0x1010, 0x71), "actuator_stuck", SRC_TEST, fdi.T_NAME_ACT_STUCK, True,
         "the motor current does not follow the commanded voltage"),
-    Dtc(_c("C", 0x1010, 0x13), "actuator_open", SRC_TEST, fdi.T_ACT_OPEN, True,
+    Dtc(_c("C", 0x1010, 0x13), "actuator_open", SRC_TEST, fdi.T_NAME_ACT_OPEN, True,
         "no motor current where the commanded voltage drives one (open winding)"),
     # the supply voltage: U3003 (battery voltage), FTB 0x16 below, 0x17 above the threshold
     Dtc(_c("U", 0x3003, 0x16), "supply_voltage_low", SRC_TEST, fdi.T_SUPPLY_LOW, True,

@@ -36,8 +36,9 @@ Each tick, after the Kalman filter's correction (``firmware.ecu`` stage 2):
   residual and restarts the test) it fails and holds for ``act_retry_ticks``, then tries
   again. No verdict where the linear model does not hold (bump stops, an airborne tyre), the
   current is not measured, BA or WA looks stuck, or an innovation test fails (the EMF
-  advances with BA - WA); the innovation tests pause while it is above its level (their
-  force comes from the current). Isolation: the measured current stayed at noise level while
+  advances with BA - WA; so none either while WA's innovation statistic, which gives no
+  verdict of its own, is above its level); the innovation tests pause while it is above
+  its level (their force comes from the current). Isolation: the measured current stayed at noise level while
   the model expected current (the statistic's level): an open winding; else the actuator
   does not follow its command (stuck); a current sensor that repeats one count is left to
   its flatline test.
@@ -70,7 +71,13 @@ T_NIS_BA, T_NIS_SWS, T_NIS_WA = 0, 1, 2
 T_FLAT_BA, T_FLAT_WA, T_FLAT_SWS, T_FLAT_CUR = 3, 4, 5, 6
 T_ACT_STUCK, T_ACT_OPEN = 7, 8
 T_SUPPLY_LOW, T_SUPPLY_HIGH = 9, 10
-N_TESTS = 11
+# the isolation bank's decisions (firmware.diag.bank): a sensor named, or none
+T_ISO_BA, T_ISO_WA, T_ISO_SWS, T_ISO_CUR, T_NOT_ISOLATED = 11, 12, 13, 14, 15
+# ... and the actuator named through them (the actuator test detects; a BA or WA fault that
+# fooled it is named by the bank instead)
+T_NAME_ACT_STUCK, T_NAME_ACT_OPEN = 16, 17
+N_TESTS = 18
+NIS_TESTS = (1 << T_NIS_BA) | (1 << T_NIS_SWS) | (1 << T_NIS_WA)
 ACT_TESTS = (1 << T_ACT_STUCK) | (1 << T_ACT_OPEN)
 OLDER_COMMANDS = 2    # the actuator test also tries the two commands before the last
 SUPPLY_TESTS = (1 << T_SUPPLY_LOW) | (1 << T_SUPPLY_HIGH)
@@ -121,7 +128,7 @@ def step(P, S, tick: int, eps, hph, rho: float, force_meas: float, counts, defl:
     f2, c2 = _flatline(P, S, settled, counts)
     model_ok = (inputs_valid and not lifted and abs(defl) <= F.valid_defl_m
                 and S.flat_run[0] < F.act_flat_ticks[0] and S.flat_run[1] < F.act_flat_ticks[1]
-                and not S.nis_failed)
+                and not S.nis_failed and S.nis[T_NIS_WA] <= F.nis_threshold)
     f3, c3 = _actuator(P, S, tick, settled, counts[3], i_meas, a_rel, model_ok)
     if S.act_onset >= 0 or S.act_latched:
         f1, c1 = S.nis_failed, 0

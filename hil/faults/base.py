@@ -47,8 +47,10 @@ class Result:
     note: str = ""
     dtc: list = None                  # plausible faults: the DTCs read over UDS after it
     detect_ms: Optional[float] = None  # first faulty tick to detection
-    isolated: Optional[bool] = None   # the DTC naming the faulty channel confirmed (None:
-    #                                   not claimed for this fault)
+    isolated: Optional[bool] = None   # the faulty part named (None: not claimed for this fault)
+    isolation: Optional[str] = None   # what the confirmed DTCs name: "right" (the faulty part
+    #                                   only), "not isolated" (no part: the bank could not
+    #                                   tell), "wrong" (a healthy part), None (no DTC)
     snapshot_ok: Optional[bool] = None  # its snapshot: in the window, the drive's speed
 
 

@@ -34,8 +34,14 @@ class Plausible(Fault):
         judge_dtcs(r, self, ev.first, ev.window, ev.dtc_read)
         return r
 
+    @property
+    def part(self) -> str:
+        """The part this fault is of (``firmware.diag.dtc.PARTS``)."""
+        return fw.DTCS[fw.BY_NAME[self.dtc]].part if self.dtc else ""
+
     def holds(self, r: Result) -> bool:
-        return super().holds(r) and bool(r.dtc) and r.snapshot_ok and r.isolated is not False
+        return (super().holds(r) and bool(r.dtc) and r.snapshot_ok and r.isolated is not False
+                and r.isolation != "wrong")
 
     def limit_text(self, r: Result) -> str:
         return (super().limit_text(r) + ", DTC confirmed with its snapshot"
@@ -44,7 +50,7 @@ class Plausible(Fault):
     def value_text(self, r: Result) -> str:
         return (super().value_text(r) + f"; DTC {', '.join(r.dtc or []) or 'none'}"
                 + ("" if r.snapshot_ok else ", snapshot wrong or missing")
-                + (", not isolated" if r.isolated is False else ""))
+                + (f", isolation {r.isolation}" if r.isolation not in (None, "right") else ""))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -57,6 +63,10 @@ class SensorFault(Plausible):
     counts: int = 0
     rate: float = 0.0
     gain: float = 1.0
+
+    @property
+    def part(self) -> str:
+        return self.channel                       # (the channels are named as the parts)
 
     def after_emit(self, inj, plant, frames, w: Window):
         sig = SIGNAL[self.channel]
@@ -82,8 +92,8 @@ class SensorFault(Plausible):
 def judge_dtcs(r: Result, spec: Fault, first: int, w: Window, read: Optional[dict]) -> None:
     """A plausible fault's DTCs as the tester read them over UDS after its window: its
     model-based DTCs confirmed, each with a snapshot taken inside the window at the drive's
-    speed; ``isolated``: the DTC naming the faulty channel is among them (where the fault
-    claims it)."""
+    speed; ``isolation``: what the confirmed DTCs name (a wrong isolation is any that names a
+    healthy part); ``isolated``: the faulty part named, where the fault claims it."""
     from hil.config import default_vehicle
 
     dt_ms = default_vehicle().sim.plant_dt_s * 1e3
@@ -104,5 +114,12 @@ def judge_dtcs(r: Result, spec: Fault, first: int, w: Window, read: Optional[dic
         and d["snapshot"]["speed_mps"] is not None
         and abs(d["snapshot"]["speed_mps"] - CAMPAIGN_SPEED_MPS) <= SNAPSHOT_SPEED_TOL_MPS
         for d in own)
+    parts = {fw.DTCS[fw.BY_NAME[d["name"]]].part for d in got} & set(fw.PARTS)
+    if parts - {spec.part}:
+        r.isolation = "wrong"
+    elif parts:
+        r.isolation = "right"
+    elif any(d["name"] == "sensor_not_isolated" for d in got):
+        r.isolation = "not isolated"
     if spec.dtc:
-        r.isolated = any(d["name"] == spec.dtc for d in own)
+        r.isolated = r.isolation == "right"

@@ -39,6 +39,7 @@ from typing import Optional
 import numpy as np
 
 from firmware import params as fp
+from calib.options import DesignOptions
 from hil.faults.base import (CAMPAIGN_GRADE, CAMPAIGN_MODE, CAMPAIGN_SPEED_MPS,
                              MAX_ACTUATOR_TICKS, MAX_PLAUSIBLE_TICKS, MAX_REACTION_TICKS,
                              Evidence, Result, Window)
@@ -127,7 +128,9 @@ def _attacker(windows: list[Window], spec, marks: dict, stop, on_bus: dict) -> N
         close_bus(bus)
 
 
-DTC_READ_AFTER = 1000           # ticks after a plausible fault's window: its DTCs are read
+# ticks after a plausible fault's window: its DTCs are read (the isolation bank decides
+# within fdi_bank_decide_s of the detection, which comes inside the window)
+DTC_READ_AFTER = int(round(DesignOptions().fdi_bank_decide_s * 1000)) + 1000
 DTC_CLEAR_BEFORE = 300          # ... and before the first one, the DTCs of the earlier faults
 #                                 are cleared (so each snapshot is the fault's own)
 
@@ -397,7 +400,7 @@ def _table(results: list[Result]) -> None:
     t = Table(title=f"fault campaign: ECU in {CAMPAIGN_MODE} mode, grade {CAMPAIGN_GRADE} at "
                     f"{CAMPAIGN_SPEED_MPS:g} m/s, lockstep (ticks of 1 ms)")
     for col in ("fault", "safety", "detected", "reaction", "recovered", "recovery", "crashed",
-                "driver told", "fault bits", "dtc", "detect_ms", "isolated"):
+                "driver told", "fault bits", "dtc", "detect_ms", "isolation"):
         t.add_column(col, no_wrap=True)
 
     def cell(v, bad=False):
@@ -413,7 +416,7 @@ def _table(results: list[Result]) -> None:
                   cell(r.reaction_ticks), cell(r.recovered, True), cell(r.recovery_ticks),
                   "YES" if r.crashed else "no", cell(r.driver_told, True), bits,
                   ", ".join(d.split()[0] for d in r.dtc) if r.dtc else "-",
-                  cell(r.detect_ms), cell(r.isolated, True))
+                  cell(r.detect_ms), r.isolation or "-")
     console = Console()
     if not console.is_terminal:
         console = Console(width=200)

@@ -1,0 +1,213 @@
+"""Isolation after detection: the bank of residual generators and its decision
+(docs/isolation.md).
+
+Four fixed-gain filters on the winding model (``calib.fdi_bank``), filter k blind to sensor
+k (``BLIND``: BA, WA, SWS, current), each predicting with the voltage the bridge applied over
+the last step (an open bridge: no current, the current state held at zero) and correcting
+with the three channels it reads. Its whitened innovation nu' S^-1 nu / 3, S = q S_road +
+S_noise + var_F S_force exact for the fixed gain at the road intensity q the grade estimate
+gives (no Riccati step), goes through an EWMA against chi2_{3W}(1 - alpha) / (3W): above it
+the filter is inconsistent. The statistics hold, as the innovation tests' do, while the
+model does not apply or a channel a filter reads is held (no correction then either).
+
+The decision (an episode): a detection (an innovation test, a flatline test or the actuator
+test failed) opens one. A fault of sensor j cannot make the filter blind to j inconsistent,
+so every filter found inconsistent during the episode clears the sensor it is blind to.
+* a flatline test fails: that channel, named by its own DTC;
+* the actuator test failed: it advances the back-EMF with BA - WA, so a fault of either can
+  fool it; a BA or WA fault the bank names is named instead, else the actuator (stuck, or
+  open where the test found no current) once BA and WA are both cleared or ``act_ticks``
+  have passed;
+* three sensors cleared and the fourth's filter consistent for ``confirm_ticks``: that
+  sensor (``T_ISO_*``);
+* all four cleared (no single sensor fits), or ``decide_ticks`` without a decision: not
+  isolated (``T_NOT_ISOLATED``), the sensors left in ``candidates`` (state only, so far).
+An episode's decision is reported once (a failed report of its test); the next episode opens
+once detection has been quiet for ``settle_ticks`` (1 s) after it.
+
+The bank's arithmetic is float in both arithmetic paths (as the innovation tests':
+``firmware.diag.fdi``); compiled (numba) over the state record's ``bank`` fields.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from firmware.kernels import njit
+from firmware.util import pymin
+
+N_FILTERS, N_READS, N_STATES = 4, 3, 7
+BLIND = ("ba", "wa", "defl", "current")  # filter k is blind to BLIND[k] (calib.fdi_bank.SENSORS)
+CURRENT_STATE = 5                        # the winding current in the filters' state
+# decisions (``S.decided``)
+NONE, ISOLATED_BA, ISOLATED_WA, ISOLATED_SWS, ISOLATED_CUR, NOT_ISOLATED, BY_TEST = \
+    -1, 0, 1, 2, 3, 4, 5
+ACTUATOR_STUCK, ACTUATOR_OPEN = 6, 7     # the actuator test's conclusion stands
+ACT_STUCK_BIT, ACT_OPEN_BIT = 1, 2       # (``act``: which the actuator test found)
+SENSOR_BA, SENSOR_WA = 1 << 0, 1 << 1    # (the cleared bits of the actuator test's inputs)
+
+STATE = np.dtype([
+    ("x", "f8", (N_FILTERS, N_STATES)),
+    ("stat", "f8", (N_FILTERS,)),
+    ("above", "i8"),                     # bit k: filter k's statistic above its level now
+    ("invalid_until", "i8"),             # the statistics hold to here
+    ("episode", "i8"),                   # tick the episode opened (-1: none)
+    ("cleared", "i8"),                   # bit k: sensor k cleared in this episode
+    ("alone_since", "i8"),               # tick one sensor was left alone (-1: not so)
+    ("decided", "i8"),                   # the episode's decision (NONE while open)
+    ("quiet_since", "i8"),               # tick detection went quiet after a decision
+    ("candidates", "i8"),                # the last decision's sensors left (bits)
+    ("nu", "f8", (N_READS,)), ("Sm", "f8", (N_READS, N_READS)),   # (scratch: the tick
+    ("xp", "f8", (N_STATES,)),                                    #  allocates nothing)
+    ("z", "f8", (4,)),                   # the tick's channels [BA, SWS, WA, current]
+    ("snapshot", "i8", (7,)),            # the freeze frame at the episode's detection
+    ("reported", "u1"),                  # a decision was reported this tick
+    ("act", "i8"),                       # the actuator test's findings in this episode ...
+    ("act_since", "i8"),                 # ... since this tick
+])
+
+
+def init(S) -> None:
+    S.stat[:] = 1.0
+    S.invalid_until = S.episode = S.alone_since = S.quiet_since = -1
+    S.decided = NONE
+
+
+@njit
+def _inv3_quad(S, nu) -> float:
+    """nu' S^-1 nu for a symmetric 3 x 3 S (the adjugate); inf where S is not positive."""
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    d, e, f = S[1, 1], S[1, 2], S[2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A + b * B + c * C
+    if not det > 0.0:
+        return math.inf
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    x, y, z = nu[0], nu[1], nu[2]
+    q = (A * x * x + D * y * y + F * z * z + 2.0 * (B * x * y + C * x * z + E * y * z))
+    return q / det
+
+
+@njit
+def filters(P, S, tick: int, z, held: int, volt: float, enabled: bool, intensity: float,
+            var_f: float, model_ok: bool, settled: bool) -> None:
+    """One tick of the four filters: ``z`` the channels [BA, SWS, WA, current] (SI),
+    ``held`` their bits whose value is not this tick's, ``volt`` the voltage over the step
+    that ended, ``enabled`` whether the bridge was closed over it."""
+    B = P.bank
+    if not model_ok:
+        S.invalid_until = tick + P.fdi.hold_ticks
+    x, nu, Sm, xp = S.x, S.nu, S.Sm, S.xp
+    above = 0
+    pl = P.plant
+    for k in range(N_FILTERS):
+        # the screw's efficiency: the model's force is K_f i; the corner's is eta K_f i or
+        # K_f i / eta by the direction of the power flow, which the filter's own estimate
+        # tells (its current and relative velocity: no sensor it is blind to): the
+        # difference is a known force over the step and in the accelerations read
+        i_est, rel = x[k, CURRENT_STATE], x[k, 0] - x[k, 1]
+        g = pl.efficiency if i_est * rel >= 0.0 else 1.0 / pl.efficiency
+        f_corr = (g - 1.0) * pl.force_constant * i_est if enabled else 0.0
+        # predict: x = phi x + gamma volt (an open bridge carries no current)
+        phi = B.phi[k] if enabled else B.phi_open[k]
+        for i in range(N_STATES):
+            s = (B.gamma[k, i] * volt if enabled else 0.0) + B.gamma_force[k, i] * f_corr
+            for j in range(N_STATES):
+                s += phi[i, j] * x[k, j]
+            xp[i] = s
+        for i in range(N_STATES):
+            x[k, i] = xp[i]
+        if not enabled:
+            x[k, CURRENT_STATE] = 0.0
+        skip = False
+        for r in range(N_READS):
+            c = B.reads[k * N_READS + r]
+            if (held >> c) & 1:
+                skip = True
+            s = z[c] - B.D_force[k, r] * f_corr
+            for j in range(N_STATES):
+                s -= B.H[k, r, j] * x[k, j]
+            nu[r] = s
+        if skip:                             # (a channel it reads is an old value)
+            S.invalid_until = max(S.invalid_until, tick + P.fdi.hold_ticks)
+            continue
+        for r in range(N_READS):
+            for j in range(N_READS):
+                Sm[r, j] = (intensity * B.S_road[k, r, j] + B.S_noise[k, r, j]
+                            + var_f * B.S_force[k, r, j])
+        d2 = _inv3_quad(Sm, nu) / N_READS
+        for i in range(N_STATES):
+            s = 0.0
+            for r in range(N_READS):
+                s += B.K[k, i, r] * nu[r]
+            x[k, i] += s
+        if settled and tick > S.invalid_until and math.isfinite(d2):
+            S.stat[k] += B.lam * (pymin(d2, P.fdi.clip_sq) - S.stat[k])
+        if S.stat[k] > B.level:
+            above |= 1 << k
+    S.above = above
+
+
+@njit
+def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot) -> int:
+    """The episode's decision this tick (the module's doc): ISOLATED_*, NOT_ISOLATED or
+    ACTUATOR_* when one is reported now, else NONE. ``flat_failed``: the flatline tests'
+    failed channels (bits in BLIND's order); ``act``: the actuator test's failure this tick
+    (ACT_STUCK_BIT, ACT_OPEN_BIT); ``snapshot``: the freeze frame a detection now would take
+    (kept for the decision's DTC: the state the fault appeared in, not the one it was named
+    in)."""
+    B = P.bank
+    S.reported = False
+    if S.episode < 0:
+        if S.decided != NONE:               # a decision stands until detection is quiet
+            if detected or flat_failed or act:
+                S.quiet_since = -1
+            elif S.quiet_since < 0:
+                S.quiet_since = tick
+            elif tick - S.quiet_since >= P.fdi.settle_ticks:
+                S.decided, S.quiet_since = NONE, -1
+            return NONE
+        if not (detected or flat_failed or act):
+            return NONE
+        S.episode, S.cleared, S.alone_since, S.act = tick, 0, -1, 0
+        S.snapshot[:] = snapshot
+    S.cleared |= S.above
+    if act and not S.act:
+        S.act_since = tick
+    S.act |= act
+    out = NONE
+    left = 0xF & ~S.cleared
+    alone = -1                              # the one sensor left, once it stayed so
+    if left and left & (left - 1) == 0:
+        if S.alone_since < 0:
+            S.alone_since = tick
+        if tick - S.alone_since >= B.confirm_ticks:
+            alone = 0
+            while not (left >> alone) & 1:
+                alone += 1
+    else:
+        S.alone_since = -1
+    if flat_failed:
+        S.decided = BY_TEST                 # (the flatline's own DTC names the channel)
+    elif S.act:
+        # the actuator test advances the back-EMF with BA - WA: a BA or WA fault the bank
+        # names was what it saw; else its conclusion stands once both are cleared or
+        # act_ticks have passed (a current sensor left alone cannot be told from the
+        # actuator: the filters that read the current see either)
+        if alone == ISOLATED_BA or alone == ISOLATED_WA:
+            S.decided = out = alone
+        elif not (left & (SENSOR_BA | SENSOR_WA)) or tick - S.act_since >= B.act_ticks:
+            S.decided = out = ACTUATOR_OPEN if S.act & ACT_OPEN_BIT else ACTUATOR_STUCK
+    elif left == 0:
+        S.decided = out = NOT_ISOLATED
+    elif alone >= 0:
+        S.decided = out = alone
+    elif tick - S.episode >= B.decide_ticks:
+        S.decided = out = NOT_ISOLATED
+    if S.decided != NONE:
+        S.candidates = 0xF & ~S.cleared
+        S.episode, S.quiet_since = -1, -1
+    S.reported = out != NONE
+    return out
