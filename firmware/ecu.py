@@ -316,50 +316,10 @@ def _fdi(P, S, inp, defl, ba, wa, i_meas, force_meas, faults) -> int:
     inputs_ok = not (faults & INPUT_FAULTS)
     failed = fdi.step(P, S.fdi, inp.tick, S.akf.innovation, S.akf.hph, rho, force_meas, good,
                       defl, lifted, i_meas, ba - wa, inputs_ok, inp.supply)
-    _isolate(P, S, inp.tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed)
+    bank.isolate(P, S, inp.tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed,
+                 _freeze_frame(S, inp.tick))
     return ((safety.FAULT_PLAUSIBILITY if failed & ~SUPPLY_TESTS else 0)
             | (safety.FAULT_SUPPLY if failed & SUPPLY_TESTS else 0))
-
-
-@njit
-def _isolate(P, S, tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed) -> None:
-    """Stage 2b's isolation (``firmware.diag.bank``): the filter bank's tick, then the
-    episode's decision, reported as its test's failure (the DTC that names the sensor, or
-    says none can be named)."""
-    F, B = P.fdi, S.bank
-    z = B.z
-    z[0], z[1], z[2], z[3] = ba, defl, wa, i_meas
-    held = 0
-    for bit, c in ((0, adc.BA), (1, adc.DEFL), (2, adc.WA), (3, adc.CUR)):
-        if not adc.measured(S.adc, c):
-            held |= 1 << bit
-    gq = S.grade.gq
-    q = P.akf.road_intensity_per_mps * S.adc.value[adc.SPEED] * (
-        gq / P.akf_q_gq_nominal if math.isfinite(gq) else 1.0)
-    band = abs(force_meas) * F.force_band
-    model_ok = (inputs_ok and not lifted and abs(defl) <= F.valid_defl_m
-                and abs(i_meas) < P.plant.current_limit - 5.0 * F.cur_sigma_a)
-    bank.filters(P, B, tick, z, held, S.fdi.v1, bool(S.fdi.en1), q, band * band / 12.0,
-                 model_ok, tick >= F.settle_ticks)
-    flat = 0
-    for j, t in enumerate(fdi.FLAT_TESTS):
-        if (failed >> t) & 1:
-            flat |= 1 << j
-    act = ((bank.ACT_STUCK_BIT if (failed >> fdi.T_ACT_STUCK) & 1 else 0)
-           | (bank.ACT_OPEN_BIT if (failed >> fdi.T_ACT_OPEN) & 1 else 0))
-    out = bank.decide(P, B, tick, (failed & fdi.NIS_TESTS) != 0, flat, act,
-                      _freeze_frame(S, tick))
-    if out != bank.NONE:
-        if out == bank.NOT_ISOLATED:
-            t = fdi.T_NOT_ISOLATED
-        elif out == bank.ACTUATOR_STUCK:
-            t = fdi.T_NAME_ACT_STUCK
-        elif out == bank.ACTUATOR_OPEN:
-            t = fdi.T_NAME_ACT_OPEN
-        else:
-            t = fdi.T_ISO_BA + out
-        S.fdi.failed |= 1 << t
-        S.fdi.completed |= 1 << t
 
 
 @njit

@@ -35,6 +35,8 @@ import math
 
 import numpy as np
 
+from firmware import adc
+from firmware.diag import fdi
 from firmware.kernels import njit
 from firmware.util import pymin
 
@@ -211,3 +213,45 @@ def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot
         S.episode, S.quiet_since = -1, -1
     S.reported = out != NONE
     return out
+
+
+@njit
+def isolate(P, S, tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed,
+            snapshot) -> None:
+    """Stage 2b's isolation (``firmware.ecu``; ``S`` the ECU's state): the filters' tick,
+    then the episode's decision, reported as its test's failure in ``S.fdi`` (the DTC that
+    names the part, or says none can be named). ``failed``: the tests' failed bits this
+    tick; ``snapshot``: the freeze frame a detection now takes."""
+    F, B = P.fdi, S.bank
+    z = B.z
+    z[0], z[1], z[2], z[3] = ba, defl, wa, i_meas
+    held = 0
+    for bit, c in ((0, adc.BA), (1, adc.DEFL), (2, adc.WA), (3, adc.CUR)):
+        if not adc.measured(S.adc, c):
+            held |= 1 << bit
+    gq = S.grade.gq
+    q = P.akf.road_intensity_per_mps * S.adc.value[adc.SPEED] * (
+        gq / P.akf_q_gq_nominal if math.isfinite(gq) else 1.0)
+    band = abs(force_meas) * F.force_band
+    model_ok = (inputs_ok and not lifted and abs(defl) <= F.valid_defl_m
+                and abs(i_meas) < P.plant.current_limit - 5.0 * F.cur_sigma_a)
+    filters(P, B, tick, z, held, S.fdi.v1, bool(S.fdi.en1), q, band * band / 12.0,
+                 model_ok, tick >= F.settle_ticks)
+    flat = 0
+    for j, t in enumerate(fdi.FLAT_TESTS):
+        if (failed >> t) & 1:
+            flat |= 1 << j
+    act = ((ACT_STUCK_BIT if (failed >> fdi.T_ACT_STUCK) & 1 else 0)
+           | (ACT_OPEN_BIT if (failed >> fdi.T_ACT_OPEN) & 1 else 0))
+    out = decide(P, B, tick, (failed & fdi.NIS_TESTS) != 0, flat, act, snapshot)
+    if out != NONE:
+        if out == NOT_ISOLATED:
+            t = fdi.T_NOT_ISOLATED
+        elif out == ACTUATOR_STUCK:
+            t = fdi.T_NAME_ACT_STUCK
+        elif out == ACTUATOR_OPEN:
+            t = fdi.T_NAME_ACT_OPEN
+        else:
+            t = fdi.T_ISO_BA + out
+        S.fdi.failed |= 1 << t
+        S.fdi.completed |= 1 << t
