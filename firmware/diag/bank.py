@@ -20,8 +20,10 @@ so every filter found inconsistent during the episode clears the sensor it is bl
   have passed;
 * three sensors cleared and the fourth's filter consistent for ``confirm_ticks``: that
   sensor (``T_ISO_*``);
-* all four cleared (no single sensor fits), or ``decide_ticks`` without a decision: not
-  isolated (``T_NOT_ISOLATED``), the sensors left in ``candidates`` (state only, so far).
+* all four cleared (no single sensor fits), ``decide_ticks`` without a decision, or the
+  evidence ended (no test failing and no filter above its level for ``settle_ticks``: a
+  fault that went away leaves no more to learn): not isolated (``T_NOT_ISOLATED``), the
+  sensors left in ``candidates`` (state only, so far).
 An episode's decision is reported once (a failed report of its test); the next episode opens
 once detection has been quiet for ``settle_ticks`` (1 s) after it.
 
@@ -59,7 +61,7 @@ STATE = np.dtype([
     ("cleared", "i8"),                   # bit k: sensor k cleared in this episode
     ("alone_since", "i8"),               # tick one sensor was left alone (-1: not so)
     ("decided", "i8"),                   # the episode's decision (NONE while open)
-    ("quiet_since", "i8"),               # tick detection went quiet after a decision
+    ("quiet_since", "i8"),               # tick detection (and the filters) went quiet
     ("candidates", "i8"),                # the last decision's sensors left (bits)
     ("nu", "f8", (N_READS,)), ("Sm", "f8", (N_READS, N_READS)),   # (scratch: the tick
     ("xp", "f8", (N_STATES,)),                                    #  allocates nothing)
@@ -175,6 +177,13 @@ def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot
             return NONE
         S.episode, S.cleared, S.alone_since, S.act = tick, 0, -1, 0
         S.snapshot[:] = snapshot
+        S.quiet_since = -1
+    # the evidence ended: no test failing and no filter above its level for settle_ticks
+    if detected or flat_failed or act or S.above:
+        S.quiet_since = -1
+    elif S.quiet_since < 0:
+        S.quiet_since = tick
+    ended = S.quiet_since >= 0 and tick - S.quiet_since >= P.fdi.settle_ticks
     S.cleared |= S.above
     if act and not S.act:
         S.act_since = tick
@@ -200,13 +209,14 @@ def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot
         # actuator: the filters that read the current see either)
         if alone == ISOLATED_BA or alone == ISOLATED_WA:
             S.decided = out = alone
-        elif not (left & (SENSOR_BA | SENSOR_WA)) or tick - S.act_since >= B.act_ticks:
+        elif (not (left & (SENSOR_BA | SENSOR_WA)) or tick - S.act_since >= B.act_ticks
+              or ended):
             S.decided = out = ACTUATOR_OPEN if S.act & ACT_OPEN_BIT else ACTUATOR_STUCK
     elif left == 0:
         S.decided = out = NOT_ISOLATED
     elif alone >= 0:
         S.decided = out = alone
-    elif tick - S.episode >= B.decide_ticks:
+    elif tick - S.episode >= B.decide_ticks or ended:
         S.decided = out = NOT_ISOLATED
     if S.decided != NONE:
         S.candidates = 0xF & ~S.cleared

@@ -39,7 +39,6 @@ from typing import Optional
 import numpy as np
 
 from firmware import params as fp
-from calib.options import DesignOptions
 from hil.faults.base import (CAMPAIGN_GRADE, CAMPAIGN_MODE, CAMPAIGN_SPEED_MPS,
                              MAX_ACTUATOR_TICKS, MAX_PLAUSIBLE_TICKS, MAX_REACTION_TICKS,
                              Evidence, Result, Window)
@@ -128,9 +127,9 @@ def _attacker(windows: list[Window], spec, marks: dict, stop, on_bus: dict) -> N
         close_bus(bus)
 
 
-# ticks after a plausible fault's window: its DTCs are read (the isolation bank decides
-# within fdi_bank_decide_s of the detection, which comes inside the window)
-DTC_READ_AFTER = int(round(DesignOptions().fdi_bank_decide_s * 1000)) + 1000
+# ticks after a plausible fault's window: its DTCs are read (the isolation bank decides once
+# the evidence ended: the tests and its filters quiet for fdi_settle_s; 300 ms windows)
+DTC_READ_AFTER = 3000
 DTC_CLEAR_BEFORE = 300          # ... and before the first one, the DTCs of the earlier faults
 #                                 are cleared (so each snapshot is the fault's own)
 
