@@ -42,7 +42,7 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     r0 = np.diag(np.array([c.noise_std ** 2 for c in chans[:m]]) + quant)
     # the known force comes from the measured current: its noise enters BA and WA together
     cur = cfg.sensors.motor_current
-    force_var = (ap.force_constant_n_per_a) ** 2 * (cur.noise_std ** 2 + cur.lsb ** 2 / 12.0)
+    force_var = (ap.force_constant_n_per_a) ** 2 * cur.variance
     r0 = r0 + np.outer(D, D) * force_var
     # initial covariance: the stationary one of the passive car on the nominal road
     model = linear_model(vp, GRADE_GQ_M3[opts.akf_q_grade], NOMINAL_SPEED_MPS, convention)

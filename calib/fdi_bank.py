@@ -46,6 +46,8 @@ from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from calib.vehicle import VehicleConfig
 
 SENSORS = ("ba", "wa", "defl", "current")       # the sensors a filter can be blind to
+CHANNEL = {"ba": "body_accel", "wa": "wheel_accel", "defl": "susp_defl",   # (their [sensors]
+           "current": "motor_current"}                                      #  tables)
 READS = {"ba": ("defl", "wa"), "wa": ("ba", "defl"), "defl": ("ba", "wa"),
          "current": ("ba", "defl", "wa"), "full": ("ba", "defl", "wa")}
 # the "voltage" structure: every bank filter on the winding model, the current a measurement
@@ -72,7 +74,6 @@ class Generator:
     S_road: np.ndarray      # (m, m) innovation covariance per unit road intensity
     S_noise: np.ndarray     # (m, m) ... from the measurement and fixed process noise
     S_force: np.ndarray     # (m, m) ... per unit variance of a white force error (N^2)
-    design_intensity: float  # the road intensity of the design (m^2/s^3)
     force_per_amp: float    # K_f: a current sensor's error as a force error
 
     @property
@@ -117,23 +118,21 @@ def check_options(opts: DesignOptions) -> None:
 def generators(cfg: VehicleConfig, opts: DesignOptions) -> dict[str, Generator]:
     """The bank for this vehicle: {blind sensor (or "full"): Generator}."""
     check_options(opts)
-    ap, sp = cfg.actuator, cfg.sensors
     A5, B5, phi5, gamma5, q_unit5 = filter_discrete(cfg, opts.dt_s)
     design_q = road_intensity_per_mps(GRADE_GQ_M3[opts.akf_q_grade]) * NOMINAL_SPEED_MPS
-    kf = ap.force_constant_n_per_a
-    chans = {"ba": sp.body_accel, "defl": sp.susp_defl, "wa": sp.wheel_accel}
-    sig2 = {k: c.noise_std ** 2 + c.lsb ** 2 / 12.0 for k, c in chans.items()}
-    cur = sp.motor_current
-    cur_var = cur.noise_std ** 2 + cur.lsb ** 2 / 12.0
+    kf = cfg.actuator.force_constant_n_per_a
+    sig2 = {s: getattr(cfg.sensors, CHANNEL[s]).variance for s in SENSORS}
+    cur_var = sig2["current"]
     rows5 = {"ba": (A5[0], B5[0]), "defl": (np.array([0, 0, 1.0, -1.0, 0]), 0.0),
              "wa": (A5[1], B5[1])}
-    sig2["current"] = cur_var
+    # the winding model, one for every filter on it
+    phi7, gamma7, gamma_f7, H7, q_unit7, q_fixed7 = _winding_model(cfg, opts, A5, B5)
+    row = {"ba": H7[0], "defl": H7[1], "wa": H7[2], "current": np.eye(7)[5]}
     out = {}
     voltage = opts.fdi_bank_structure == "voltage"
     for blind, reads in (READS_VOLTAGE if voltage else READS).items():
         if blind == "current" or (voltage and blind != "full"):
-            phi, gamma, gamma_f, H7, q_unit, q_fixed = _winding_model(cfg, opts, A5, B5)
-            row = {"ba": H7[0], "defl": H7[1], "wa": H7[2], "current": np.eye(7)[5]}
+            phi, gamma, gamma_f, q_unit, q_fixed = phi7, gamma7, gamma_f7, q_unit7, q_fixed7
             H = np.array([row[c] for c in reads])
             D = np.zeros(len(reads))
             D_f = np.array([B5[0] if c == "ba" else B5[1] if c == "wa" else 0.0 for c in reads])
@@ -157,8 +156,7 @@ def generators(cfg: VehicleConfig, opts: DesignOptions) -> dict[str, Generator]:
         S_force = _cov_response(a_e, H, gamma_f - phi @ K @ D_f, D_f)
         g = Generator(blind=blind, reads=reads, phi=phi, gamma=gamma, gamma_force=gamma_f,
                       H=H, D=D, D_force=D_f, K=K, r0=r0, q_unit=q_unit, q_fixed=q_fixed,
-                      S_road=S_road, S_noise=S_noise, S_force=S_force, design_intensity=design_q,
-                      force_per_amp=kf)
+                      S_road=S_road, S_noise=S_noise, S_force=S_force, force_per_amp=kf)
         out[blind] = g
     return out
 
@@ -182,7 +180,6 @@ def _winding_model(cfg: VehicleConfig, opts: DesignOptions, A5: np.ndarray, B5: 
     applies, the force K_f i, and v_off a random walk that takes up what the voltage model
     misses (the supply's measurement, the winding's resistance, the back-EMF constant). Returns
     (phi, gamma_voltage, gamma_force, H, q_unit, q_fixed)."""
-    sup = cfg.sensors.supply_voltage
     dt = opts.dt_s
     A = winding_continuous(cfg, A5, B5)
     n = A.shape[0]
@@ -197,7 +194,7 @@ def _winding_model(cfg: VehicleConfig, opts: DesignOptions, A5: np.ndarray, B5: 
     q_unit = van_loan_integral(A.T, np.outer(e, e), dt)
     # the voltage the ECU knows: the supply's sample noise (taken as white, though a sample
     # holds for 10 ms); the offset's walk
-    v_var = sup.noise_std ** 2 + sup.lsb ** 2 / 12.0
+    v_var = cfg.sensors.supply_voltage.variance
     e[:] = 0.0
     e[6] = 1.0
     q_fixed = np.outer(gamma, gamma) * v_var + van_loan_integral(
@@ -226,9 +223,7 @@ def road_intensity(cfg: VehicleConfig, opts: DesignOptions, grade: str, speed: f
 
 def sensor_sigma(cfg: VehicleConfig, sensor: str) -> float:
     """One sample's noise std of a sensor, its quantisation included."""
-    c = getattr(cfg.sensors, {"ba": "body_accel", "wa": "wheel_accel", "defl": "susp_defl",
-                              "current": "motor_current"}[sensor])
-    return math.sqrt(c.noise_std ** 2 + c.lsb ** 2 / 12.0)
+    return math.sqrt(getattr(cfg.sensors, CHANNEL[sensor]).variance)
 
 
 def bank_params(cfg: VehicleConfig, opts: DesignOptions):
@@ -239,12 +234,14 @@ def bank_params(cfg: VehicleConfig, opts: DesignOptions):
 
     if opts.fdi_bank_structure != "voltage":
         raise ValueError("the firmware's bank runs the voltage structure only")
-    gens = [generators(cfg, opts)[k] for k in SENSORS]
+    bank = generators(cfg, opts)
+    gens = [bank[k] for k in SENSORS]
     chan = {"ba": 0, "defl": 1, "wa": 2, "current": 3}
     w = opts.fdi_bank_window
     stack = lambda f: np.ascontiguousarray(np.array([f(g) for g in gens], dtype=float))  # noqa: E731
+    phi_open = _open_phi(cfg, opts)
     return fp.BankParams(
-        phi=stack(lambda g: g.phi), phi_open=stack(lambda g: _open_phi(cfg, opts)),
+        phi=stack(lambda g: g.phi), phi_open=stack(lambda g: phi_open),
         gamma=stack(lambda g: g.gamma),
         gamma_force=stack(lambda g: g.gamma_force), D_force=stack(lambda g: g.D_force),
         H=stack(lambda g: g.H),

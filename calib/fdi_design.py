@@ -51,7 +51,7 @@ def fdi_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.FdiParams:
     cur, sup = sp.motor_current, sp.supply_voltage
     eta = ap.screw_efficiency
     a = math.exp(-ap.winding_resistance_ohm * dt / ap.winding_inductance_h)
-    cur_sigma = math.sqrt(cur.noise_std ** 2 + cur.lsb ** 2 / 12.0)
+    cur_sigma = math.sqrt(cur.variance)
     supply_period = next(c for c in RX_CHECKS if c.message == "PLANT_SUPPLY").ticks(dt)[0]
     return fp.FdiParams(
         nis_lambda=lam, nis_threshold=level,

@@ -163,6 +163,11 @@ class SensorChannel:
     def lsb(self) -> float:
         return (self.range_max - self.range_min) / (2**self.bits - 1)
 
+    @property
+    def variance(self) -> float:
+        """One sample's noise variance, the ADC's quantisation (lsb^2 / 12) included."""
+        return self.noise_std ** 2 + self.lsb ** 2 / 12.0
+
 
 SENSOR_NAMES = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
 # every channel of [sensors]: the five above (sampled together, hil.sim.sensors.SensorSuite) and

@@ -278,8 +278,7 @@ def _judge(row: dict, opts: DesignOptions, cfg, sensor: str, kind: str) -> None:
     f = row["filters"]
     times = [t for t in f["full"].get("channels", {}).values() if t is not None]
     if kind == "stuck":
-        c = getattr(cfg.sensors, {"ba": "body_accel", "wa": "wheel_accel", "defl": "susp_defl",
-                                  "current": "motor_current"}[sensor])
+        c = getattr(cfg.sensors, fb.CHANNEL[sensor])
         n = flatline_ticks(c.noise_std, c.lsb, opts.fdi_false_alarm, opts.flatline_max_p)
         if n:
             row["flatline_ms"] = n * opts.dt_s * 1e3

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from calib.fdi_bank import CHANNEL
 from firmware import safety
 from firmware.diag import dtc as fw
 from hil.faults.base import (CAMPAIGN_SPEED_MPS, MAX_PLAUSIBLE_TICKS, PLAUSIBLE_TICKS,
@@ -15,8 +16,6 @@ from hil.faults.base import (CAMPAIGN_SPEED_MPS, MAX_PLAUSIBLE_TICKS, PLAUSIBLE_
 
 SIGNAL = {"ba": "BODY_ACCEL_RAW", "wa": "WHEEL_ACCEL_RAW", "defl": "SUSP_DEFL_RAW",
           "current": "MOTOR_CURRENT_RAW"}
-CHANNEL = {"ba": "body_accel", "wa": "wheel_accel", "defl": "susp_defl",
-           "current": "motor_current"}
 
 
 @dataclass(frozen=True, kw_only=True)
