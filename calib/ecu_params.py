@@ -121,6 +121,36 @@ def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
         raise ConfigError(f"{cfg.source}: no ECU calibration for this vehicle: {exc}") from None
 
 
+def degraded_modes(text: str, key: str) -> int:
+    """The bits (``firmware.params.MODE_*``) of a space-separated list of mode names."""
+    bits = 0
+    for name in text.split():
+        if name not in fp.MODE_NAMES[1:]:
+            raise ValueError(f"{key}: unknown mode {name!r} (one of "
+                             f"{', '.join(fp.MODE_NAMES[1:])})")
+        bits |= 1 << fp.MODE_NAMES.index(name)
+    return bits
+
+
+def degrade_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.DegradeParams:
+    """Degraded operation (``firmware.diag.degrade``): the model's output of each sensor for
+    the virtual sensor (the filter's state [zs', zt', zs, zt, zf]; the force u known), and the
+    modes kept without each (the motor current: none)."""
+    A, _, _, _, _ = filter_discrete(cfg, opts.dt_s)
+    vp = cfg.vehicle
+    H = np.array([A[0], A[1], [0, 0, 1.0, -1.0, 0]])
+    D = np.array([1.0 / vp.sprung_mass_kg, -1.0 / vp.unsprung_mass_kg, 0.0])
+    modes = tuple(degraded_modes(getattr(opts, f"degraded_modes_{name}"),
+                                 f"degraded_modes_{name}")
+                  for name in ("body_accel", "wheel_accel", "susp_defl")) + (0,)
+    sp = cfg.sensors
+    noise_var = np.array([c.variance for c in (sp.body_accel, sp.wheel_accel, sp.susp_defl,
+                                         sp.motor_current)])
+    return fp.DegradeParams(H=H, D=D, modes=modes, noise_var=noise_var,
+                            readmit_ticks=int(round(opts.degraded_readmit_s / opts.dt_s)),
+                            readmissions=opts.degraded_readmissions)
+
+
 def current_rail_mps(cfg: VehicleConfig, opts: DesignOptions) -> float:
     """The relative velocity beyond which a motor current at its sensor's rail is explained
     (``firmware.adc``): the margin times the velocity at which the back-EMF K v alone, against
@@ -189,6 +219,7 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
                         actuator=actuator, akf_q_follows_grade=opts.akf_q_follows_grade,
                         akf_q_gq_nominal=GRADE_GQ_M3[opts.akf_q_grade],
                         fdi=fdi_params(cfg, opts), bank=fdi_bank.bank_params(cfg, opts),
+                        degrade=degrade_params(cfg, opts),
                         software_version=SOFTWARE_VERSION,
                         calibration_sha256=bytes.fromhex(inputs_digest(cfg, gains_file, opts)),
                         vehicle_sha256=_vehicle_sha256(cfg))

@@ -163,6 +163,16 @@ class DesignOptions:
     fdi_bank_confirm_s: float = 0.1
     fdi_bank_actuator_s: float = 1.0      # the actuator test's conclusion stands after this
     fdi_bank_decide_s: float = 10.0
+    # degraded operation (firmware.diag.degrade, docs/degraded.md): the modes kept with each
+    # sensor isolated faulty, by name (space-separated; "" none): those that python -m
+    # tools.degraded measured as kept without it (the default car, seeds 1-8; the SUV keeps
+    # all four). Without the motor current no mode is kept (its loop and the filter's force
+    # need it).
+    degraded_modes_body_accel: str = "energy comfort safety"
+    degraded_modes_wheel_accel: str = "energy comfort"
+    degraded_modes_susp_defl: str = "energy comfort safety"
+    degraded_readmit_s: float = 2.0       # a sensor out that agrees again this long is used
+    degraded_readmissions: int = 1        # again, this often per cycle (then it stays out)
     # the supply's operating range as a fraction of the nominal bus voltage: for 48 V,
     # ISO 21780's range of unlimited operation begins at 36 V and its limited range ends at
     # 54 V. Below, the actuator cannot be relied on for its force; above, the bridge must be

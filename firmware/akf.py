@@ -116,9 +116,22 @@ def off_model(P, S, ba: float, wa: float):
     for j in range(3):
         if not adc.measured(S.adc, MEASURED[j]):     # (held, or clipped at a rail)
             held |= 1 << j
+    held |= out_z(S)
     adapt = (current_known and stroke_known and not lifted
              and adc.measured(S.adc, adc.BA) and adc.measured(S.adc, adc.WA))
     return adapt, held
+
+
+@njit
+def out_z(S) -> int:
+    """The measurement (z bit: BA, SWS, WA) of the sensor out (``firmware.diag.degrade``),
+    which the filter never corrects with (R-hat holds meanwhile: it adapts only on ticks
+    where every measurement is used); 0 if none. ``S``: the ECU's state."""
+    out = S.degrade.sensor
+    for j in range(3):
+        if out == MEASURED[j] and j < S.akf.R.shape[0]:
+            return 1 << j
+    return 0
 
 
 @njit

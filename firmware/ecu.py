@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from firmware import actuator, adc, akf, control, grade, modes, safety
-from firmware.diag import bank, dtc, fdi
+from firmware.diag import bank, degrade, dtc, fdi
 from firmware.diag.fdi import SUPPLY_TESTS
 from firmware.diag.view import DiagView
 from firmware.fixedpoint import to_fixed, to_float
@@ -73,6 +73,8 @@ class Outputs(NamedTuple):
     gq_est_log_c: int        # log4(G_q / G_q,A) * 100 (A = 0, B = 100, ...), -32768 if unknown
     ba_rms_mmps2: int        # body acceleration RMS over the grade window, mm/s^2
     dtd_rms_um: int          # tyre deflection RMS (road-holding check), micrometres
+    degraded: int = 0        # firmware.diag.degrade.STATE_* (normal, a sensor out, fail-safe
+    #                          latched, a sensor out to the cycle's end)
 
 
 # an ADC channel or a frame of the receive path was bad: the filter ran on held values
@@ -97,7 +99,8 @@ def state_dtype(p: EcuParams) -> np.dtype:
         ("adc", adc.STATE), ("akf", akf.state_dtype(m)),
         ("grade", grade.state_dtype(p.grade.n_blocks)), ("modes", modes.STATE),
         ("ctl", control.state_dtype(n_in, n_hidden, p.control.bp_w_out.shape[0])),
-        ("fdi", fdi.STATE), ("bank", bank.STATE), ("dtc", dtc.STATE), ("last", LAST),
+        ("fdi", fdi.STATE), ("bank", bank.STATE), ("degrade", degrade.STATE),
+        ("dtc", dtc.STATE), ("last", LAST),
         ("snapshot", "i8", (len(dtc.SNAPSHOT),)),    # (the freeze frame being taken)
         ("good_counts", "i8", (4,)),                 # (stage 2b's: BA, WA, SWS, current)
         ("fx", fx.state_dtype(m)),                   # the fixed-point path's integer state
@@ -120,6 +123,7 @@ def init(p: EcuParams, P: np.ndarray | None = None, T: np.ndarray | None = None
     control.init(c.control, s.ctl, p.modes.controllers[p.modes.initial_mode])
     fdi.init(s.fdi)
     bank.init(s.bank)
+    degrade.init(s.degrade)
     dtc.init(s.dtc)
     if T is not None:
         fx.init(view(T), s.fx, p.modes.controllers[p.modes.initial_mode])
@@ -142,8 +146,10 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
     P, S, inp, out = Pa[0], Sa[0], ia[0], oa[0]
     S.tick = inp.tick
     # 1. ADC: the inputs' counts -> SI values, channel faults (held values on a fault; a rail
-    #    the last estimate explains is none)
-    faults = adc.sample(P.adc, S.adc, inp.counts, _explained_rails(P, S))
+    #    the last estimate explains is none); a sensor out (firmware.diag.degrade): its
+    #    channel is the virtual sensor's
+    counts = degrade.substitute(P, S, inp.counts)
+    faults = adc.sample(P.adc, S.adc, counts, _explained_rails(P, S))
     ba, wa, defl = S.adc.value[adc.BA], S.adc.value[adc.WA], S.adc.value[adc.DEFL]
     i_meas, speed = S.adc.value[adc.CUR], S.adc.value[adc.SPEED]
     faults |= inp.link_faults
@@ -162,6 +168,7 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
         if Ta is not None:
             S.fx.x[:] = 0
             S.fx.reset = True
+    degrade.known_force(S.degrade, force_meas + akf.bump_force(P.akf, defl))
     vt, zt, zf = S.akf.x[1], S.akf.x[3], S.akf.x[4]
     dtd_est = zt - zf
     # 2b. model-based fault detection: innovation, flatline, actuator, supply tests (uses 1, 2)
@@ -172,10 +179,11 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
     # 3. road grade from the road estimate (uses 1, 2); tyre-deflection RMS for road holding
     g_est = grade.step(P.grade, S.grade, vt, dtd_est, ba, speed, P.dt_s)
     dtd_rms = modes.road_holding_rms(P.modes, S.modes, dtd_est)
-    # 4. modes: recommendation, driver request, safety override, fail-safe (uses 1-3)
+    # 4. modes: recommendation, driver request, safety override, fail-safe, the modes a
+    #    sensor out keeps (uses 1-3)
     safety_fault = (faults & P.safety_relevant) != 0
     mode = modes.step(P.modes, S.modes, g_est, inp.req_kind, inp.req_mode, inp.req_counter,
-                      dtd_rms, safety_fault)
+                      dtd_rms, safety_fault, degrade.kept_modes(P, S))
     faults |= _request_faults(S.modes.events)
     # 5.-6. controller of the mode, crossfaded; the gate; force -> PWM duty / regen (uses 1-4)
     regen_on = mode == MODE_ENERGY
@@ -233,6 +241,7 @@ def _outputs(S, out, duty, active, force, regen_on, mode, g_est, faults, zf, dtd
     gq_log = S.grade.log_gq
     out.gq_est_log_c = rha(gq_log * 100) if math.isfinite(gq_log) else -32768
     out.ba_rms_mmps2, out.dtd_rms_um = rha(S.grade.ba_rms * 1e3), rha(dtd_rms * 1e6)
+    out.degraded = degrade.state_code(S.degrade)
 
 
 @njit
@@ -312,13 +321,20 @@ def _fdi(P, S, inp, defl, ba, wa, i_meas, force_meas, faults) -> int:
     lifted = akf.airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa)
     good = S.good_counts
     for c in range(4):
-        good[c] = adc.good_count(S.adc, c)
+        good[c] = adc.good_count(S.adc, c) if c != S.degrade.sensor else -1
     inputs_ok = not (faults & INPUT_FAULTS)
     failed = fdi.step(P, S.fdi, inp.tick, S.akf.innovation, S.akf.hph, rho, force_meas, good,
-                      defl, lifted, i_meas, ba - wa, inputs_ok, inp.supply)
+                      defl, lifted, i_meas, ba - wa, inputs_ok, inp.supply,
+                      S.degrade.sensor != adc.BA and S.degrade.sensor != adc.WA)
+    failed = degrade.silence(S, failed)               # (a sensor out's own tests)
     bank.isolate(P, S, inp.tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, failed,
                  _freeze_frame(S, inp.tick))
-    return ((safety.FAULT_PLAUSIBILITY if failed & ~SUPPLY_TESTS else 0)
+    # a sensor named: degraded operation (its own tests silent from the next tick); a second
+    # fault latches the fail-safe (the plausibility bit held); a sensor out well again
+    degrade.step(P, S, inp.tick)
+    degrade.watch(P, S, force_meas, rho)
+    blocked = degrade.bridge_blocked(S)
+    return ((safety.FAULT_PLAUSIBILITY if failed & ~SUPPLY_TESTS or blocked else 0)
             | (safety.FAULT_SUPPLY if failed & SUPPLY_TESTS else 0))
 
 
@@ -372,7 +388,8 @@ def tick_values(Pa, Ta, Sa, ia, oa, k, c0, c1, c2, c3, c4, supply, kind, mode, c
     o = oa[0]
     return (o.duty_q15, o.regen != 0, o.enable != 0, o.recommended_mode, o.active_mode,
             o.grade, o.faults, o.reason, o.events, o.override != 0, o.force_cmd_n,
-            o.road_est_um, o.dtd_est_um, o.gq_est_log_c, o.ba_rms_mmps2, o.dtd_rms_um)
+            o.road_est_um, o.dtd_est_um, o.gq_est_log_c, o.ba_rms_mmps2, o.dtd_rms_um,
+            o.degraded)
 
 
 @njit
@@ -447,6 +464,12 @@ class Ecu:
         self._new_state()
         self.S[0]["dtc"] = kept
         new_cycle(self.S)
+
+    def leave_out(self, sensor: str) -> None:
+        """Start as if the isolation had named ``sensor`` (``degrade.SENSOR_NAMES``), out to
+        the end of the cycle: how the bench measures what the ECU does without it
+        (``tools.degraded``)."""
+        degrade.enter_record(self.P, self.S, sensor, self.tick)
 
     @property
     def tick(self) -> int:

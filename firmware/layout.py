@@ -36,7 +36,8 @@ OUTPUTS = np.dtype([("duty_q15", "i8"), ("regen", "u1"), ("enable", "u1"),
                     ("recommended_mode", "i8"), ("active_mode", "i8"), ("grade", "i8"),
                     ("faults", "i8"), ("reason", "i8"), ("events", "i8"), ("override", "u1"),
                     ("force_cmd_n", "i8"), ("road_est_um", "i8"), ("dtd_est_um", "i8"),
-                    ("gq_est_log_c", "i8"), ("ba_rms_mmps2", "i8"), ("dtd_rms_um", "i8")])
+                    ("gq_est_log_c", "i8"), ("ba_rms_mmps2", "i8"), ("dtd_rms_um", "i8"),
+                    ("degraded", "i8")])
 
 # fields a calibration may leave out (None), with the value the tick reads instead
 _NONE_AS = {"gamma_wheel": lambda p: np.zeros(5)}

@@ -11,6 +11,8 @@
   the RMS has fallen below limit * exit ratio and the minimum hold has passed.
 * Faults (from the safety code) force the fail-safe state: no active force (the bridge is
   opened, passive damping remains).
+* With a sensor out (``firmware.diag.degrade``) only the modes it keeps drive; the others
+  (the driver's, or the override's safety mode) fall back to passive (REASON_DEGRADED).
 
 Compiled (numba) over the state record's ``modes`` fields.
 """
@@ -31,6 +33,7 @@ N_MODES = 5
 REASON_NONE = 0
 REASON_ROAD_HOLDING = 1      # safety override: tyre deflection over the limit
 REASON_FAULT = 2             # fail-safe: a safety-relevant fault is active
+REASON_DEGRADED = 3          # the mode is not kept with a sensor out (firmware.diag.degrade)
 
 # events of the last step (bit field, reported in the status)
 EVT_ACCEPTED = 1
@@ -72,7 +75,9 @@ def road_holding_rms(P, S, dtd_est: float) -> float:
 
 @njit
 def step(P, S, grade: int, req_kind: int, req_mode: int, req_counter: int, dtd_rms: float,
-         fault: bool) -> int:
+         fault: bool, kept: int) -> int:
+    """One step; ``kept``: the modes the sensors in use support (bits of MODE_*: a mode not
+    kept falls back to passive, REASON_DEGRADED)."""
     S.events = 0
     S.ticks += 1
     if grade != GRADE_UNKNOWN:
@@ -119,4 +124,7 @@ def step(P, S, grade: int, req_kind: int, req_mode: int, req_counter: int, dtd_r
     else:
         S.reason = REASON_NONE
         S.active_mode = S.user_mode
+    if not (kept >> S.active_mode) & 1:
+        S.reason = REASON_DEGRADED
+        S.active_mode = MODE_PASSIVE
     return S.active_mode

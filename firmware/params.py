@@ -194,6 +194,7 @@ class EcuParams:
     akf_q_gq_nominal: float      # the G_q behind akf.road_intensity_per_mps
     fdi: "FdiParams"             # model-based fault detection
     bank: "BankParams"           # the isolation bank (firmware.diag.bank)
+    degrade: "DegradeParams"     # degraded operation (firmware.diag.degrade)
     software_version: str = "0.1.0"   # DID 0xF195
     calibration_sha256: bytes = bytes(32)  # DID 0xF1A0 (the C tables header's hash)
     vehicle_sha256: bytes = bytes(32)      # DID 0xF1A1
@@ -251,3 +252,16 @@ class BankParams:
     confirm_ticks: int           # a sensor left alone this long is named
     act_ticks: int               # the actuator test's conclusion stands after this long
     decide_ticks: int            # else "not isolated" this long after the detection
+
+
+@dataclass(frozen=True)
+class DegradeParams:
+    """Degraded operation (``firmware.diag.degrade``): the virtual sensor of each channel and
+    the modes kept without each sensor."""
+
+    H: np.ndarray                # (3, 5) the model's output of BA, WA, SWS (ADC order) ...
+    D: np.ndarray                # (3,) ... and its force feedthrough
+    modes: tuple[int, ...]       # per sensor out (BA, WA, SWS, current): bits of the modes kept
+    noise_var: np.ndarray        # (4,) each sensor's noise variance (SI^2, quantisation in)
+    readmit_ticks: int           # a sensor out that agrees again this long is used again ...
+    readmissions: int            # ... this often per operation cycle (then it stays out)

@@ -155,8 +155,8 @@ class ModeState:
         rec, state = records(dataclasses.replace(P, modes=mp))
         self._p, self._s = rec["modes"], state["modes"]
 
-    def step(self, grade, kind, mode, counter, dtd=0.0, fault=False):
-        return modes.step(self._p, self._s, grade, kind, mode, counter, dtd, fault)
+    def step(self, grade, kind, mode, counter, dtd=0.0, fault=False, kept=0x1F):
+        return modes.step(self._p, self._s, grade, kind, mode, counter, dtd, fault, kept)
 
     def __getattr__(self, name):
         return int(self._s[name])

@@ -116,17 +116,20 @@ def init(S) -> None:
 
 @njit
 def step(P, S, tick: int, eps, hph, rho: float, force_meas: float, counts, defl: float,
-         lifted: bool, i_meas: float, a_rel: float, inputs_valid: bool, supply: int) -> int:
+         lifted: bool, i_meas: float, a_rel: float, inputs_valid: bool, supply: int,
+         a_rel_measured: bool = True) -> int:
     """One tick of every test (``firmware.diag.fdi.step``); returns the failed bits.
     ``counts``: this tick's good counts of BA, WA, SWS, current (-1: none); ``supply``: the
-    supply voltage's counts when a sample arrived this tick (-1: none)."""
+    supply voltage's counts when a sample arrived this tick (-1: none);
+    ``a_rel_measured``: ``a_rel`` is BA - WA as measured (else, with either sensor out,
+    ``firmware.diag.degrade``, the actuator test gives no verdict)."""
     F = P.fdi
     settled = tick >= F.settle_ticks
     if not inputs_valid:
         S.invalid_until = tick + F.hold_ticks
     f0, c0 = _supply(F, S, settled, supply)
     f2, c2 = _flatline(P, S, settled, counts)
-    model_ok = (inputs_valid and not lifted and abs(defl) <= F.valid_defl_m
+    model_ok = (inputs_valid and a_rel_measured and not lifted and abs(defl) <= F.valid_defl_m
                 and S.flat_run[0] < F.act_flat_ticks[0] and S.flat_run[1] < F.act_flat_ticks[1]
                 and not S.nis_failed and S.nis[T_NIS_WA] <= F.nis_threshold)
     f3, c3 = _actuator(P, S, tick, settled, counts[3], i_meas, a_rel, model_ok)

@@ -36,12 +36,18 @@ DID_FAULT_WORD = 0x0103
 DID_BA_RMS = 0x0104
 DID_DTD_RMS = 0x0105
 DID_TICK = 0x0106
+DID_DEGRADED = 0x0107                # degraded operation (firmware.diag.degrade): state (0 normal,
+#                                      1 a sensor out, 2 fail-safe latched, 3 a sensor out to the
+#                                      end of the cycle), the sensor out (0xFF
+#                                      none; 0 BA, 1 WA, 2 SWS, 3 current), the tick it went out
+#                                      and the second fault's (0xFFFFFFFF: none)
 DID_SNAPSHOT = 0x0200               # snapshot record 1: tick, speed, grade, mode, BA, DTD, supply
 SNAPSHOT_RECORD = 0x01
 SNAPSHOT_SIZE = 14
 EXT_RECORDS = (0x01, 0x02, 0x03)    # occurrence counter, FDC (signed), aging counter
 DIDS = (DID_SOFTWARE_VERSION, DID_CALIBRATION_SHA256, DID_VEHICLE_SHA256, DID_ACTIVE_MODE,
-        DID_GRADE, DID_SUPPLY_VOLTAGE, DID_FAULT_WORD, DID_BA_RMS, DID_DTD_RMS, DID_TICK)
+        DID_GRADE, DID_SUPPLY_VOLTAGE, DID_FAULT_WORD, DID_BA_RMS, DID_DTD_RMS, DID_TICK,
+        DID_DEGRADED)
 SOFTWARE_VERSION_LEN = 16
 
 
@@ -130,7 +136,7 @@ def _control_dtc_setting(ds, params, tick, req):
 def _clear(ds, params, tick, req):
     if len(req) != 4:
         return negative(0x14, NRC_INCORRECT_LENGTH)
-    if not dtc.clear(ds.dtc, int.from_bytes(req[1:4], "big")):
+    if not ds.clear(int.from_bytes(req[1:4], "big")):
         return negative(0x14, NRC_REQUEST_OUT_OF_RANGE)
     return bytes((0x54,))
 
@@ -158,6 +164,10 @@ def did_data(ds: DiagView, params, did: int) -> bytes | None:
         return min(dtd, 0xFFFF).to_bytes(2, "big")
     if did == DID_TICK:
         return (max(t, 0) & 0xFFFFFFFF).to_bytes(4, "big")
+    if did == DID_DEGRADED:
+        state, sensor, since, second = ds.degraded
+        return (bytes((state, sensor & 0xFF)) + (since & 0xFFFFFFFF).to_bytes(4, "big")
+                + (second & 0xFFFFFFFF).to_bytes(4, "big"))
     return None
 
 

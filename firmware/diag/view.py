@@ -94,6 +94,25 @@ class DiagView:
         self.session_tick = 0
         self.reset_requested = 0
 
+    def clear(self, group: int) -> bool:
+        """ClearDiagnosticInformation (``firmware.diag.dtc.clear``): False where there is no
+        such group. A clear of every DTC (the workshop's) also starts the count of each
+        sensor's namings afresh (``firmware.diag.degrade``: a sensor named again after it is
+        not latched out by the earlier ones); what is out now stays out."""
+        if not dtc.clear(self.dtc, group):
+            return False
+        if group == 0xFFFFFF:
+            self._s["degrade"]["named"][:] = 0
+        return True
+
+    @property
+    def degraded(self) -> tuple:
+        """(state, sensor out, the tick it went out, the second fault's tick): -1 for none
+        (``firmware.diag.degrade``)."""
+        d = self._s["degrade"]
+        state = 2 if d["failsafe"] else 0 if d["sensor"] < 0 else 3 if d["latched"] else 1
+        return state, int(d["sensor"]), int(d["since"]), int(d["second"])
+
     @property
     def view(self) -> tuple:
         last = self._s["last"]

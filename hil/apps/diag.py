@@ -102,7 +102,8 @@ def _codecs() -> dict:
     sizes = {uds.DID_SOFTWARE_VERSION: uds.SOFTWARE_VERSION_LEN, uds.DID_CALIBRATION_SHA256: 32,
              uds.DID_VEHICLE_SHA256: 32, uds.DID_ACTIVE_MODE: 1, uds.DID_GRADE: 1,
              uds.DID_SUPPLY_VOLTAGE: 2, uds.DID_FAULT_WORD: 4, uds.DID_BA_RMS: 2,
-             uds.DID_DTD_RMS: 2, uds.DID_TICK: 4, uds.DID_SNAPSHOT: uds.SNAPSHOT_SIZE}
+             uds.DID_DTD_RMS: 2, uds.DID_TICK: 4, uds.DID_DEGRADED: 10,
+             uds.DID_SNAPSHOT: uds.SNAPSHOT_SIZE}
     return {did: Raw(n) for did, n in sizes.items()}
 
 
@@ -146,8 +147,22 @@ def read_dids(client) -> dict:
         "supply_voltage_v": None if supply == 0xFFFF else supply / 1000,
         "fault_word": u16(dids[uds.DID_FAULT_WORD]),
         "ba_rms_mps2": u16(dids[uds.DID_BA_RMS]) / 1000, "dtd_rms_m": u16(dids[uds.DID_DTD_RMS]) / 1e6,
-        "tick": int.from_bytes(dids[uds.DID_TICK], "big")}
+        "tick": int.from_bytes(dids[uds.DID_TICK], "big"),
+        "degraded": _degraded(dids[uds.DID_DEGRADED])}
     return ident
+
+
+def _degraded(raw: bytes) -> dict:
+    """DID 0x0107 (firmware.diag.uds): the degraded state, the sensor out, the ticks."""
+    from firmware.diag.degrade import SENSOR_NAMES
+
+    none = 0xFFFFFFFF
+    since, second = int.from_bytes(raw[2:6], "big"), int.from_bytes(raw[6:10], "big")
+    states = ("normal", "sensor_out", "fail_safe_latched", "sensor_out_latched")
+    return {"state": states[raw[0]] if raw[0] < len(states) else raw[0],
+            "sensor_out": SENSOR_NAMES[raw[1]] if raw[1] < len(SENSOR_NAMES) else None,
+            "since_tick": None if since == none else since,
+            "second_fault_tick": None if second == none else second}
 
 
 def read_dtcs(client, clear: bool = False) -> dict:

@@ -16,6 +16,10 @@ SUITS = {"energy": "a smooth road: harvest energy", "comfort": "ride comfort fir
          "holding together"}
 
 
+# ECU_STATUS.DEGRADED (firmware.diag.degrade): normal, one sensor out, the fail-safe latched
+DEGRADED = ("normal", "sensor_out", "fail_safe_latched", "sensor_out_latched")
+
+
 def name_of(names, value, unknown):
     """The name of an enumerated value (a mode, a grade), ``unknown`` where there is none."""
     return names[int(value)] if value is not None and 0 <= int(value) < len(names) else unknown
@@ -28,7 +32,14 @@ def describe(view: dict, t_s: float) -> dict:
                                         view.get("ESTIMATED_GRADE")), "unknown")
     reason = int(view.get("REC_REASON", view.get("REASON", fm.REASON_NONE)) or 0)
     faults = safety.fault_names(fault_word(view))
-    if reason == fm.REASON_FAULT:
+    degraded = DEGRADED[int(view.get("DEGRADED", 0) or 0) % len(DEGRADED)]
+    if degraded == "fail_safe_latched":
+        why = ("fail-safe latched: a second fault while a sensor was out (passive damping "
+               "until the next start; read the DTCs)")
+    elif reason == fm.REASON_DEGRADED:
+        why = ("a sensor is out (read the DTCs): this mode is not kept without it, passive "
+               "damping; choose one it keeps")
+    elif reason == fm.REASON_FAULT:
         why = "fail-safe: " + (", ".join(faults) or "a safety-relevant fault") + \
               " (passive damping until it clears)"
     elif reason == fm.REASON_ROAD_HOLDING:
@@ -51,6 +62,7 @@ def describe(view: dict, t_s: float) -> dict:
         "stored_j": view.get("STORED_ENERGY"),
         "drawn_j": view.get("SUPPLY_ENERGY"),
         "faults": faults,
+        "degraded": degraded,
         "modes": list(MODE_NAMES),
     }
 

@@ -164,6 +164,7 @@ PAGE = """<!doctype html>
   <tr><td>energy drawn from the supply</td><td class="v" id="drawn"></td></tr>
  </table></div>
  <div class="card"><div>ECU faults</div><div id="faults" class="ok">none</div>
+  <div id="degraded" class="ok">all sensors in use</div>
   <div style="margin-top:8px"><small>Sent:</small> <small id="sent"></small></div>
   <div><small>DTCs with snapshots: <code>python -m hil diag</code></small></div></div>
 </main>
@@ -201,6 +202,11 @@ async function poll() {
     $("drawn").innerHTML = fmt(s.drawn_j, 2, "J");
     $("faults").textContent = s.faults.length ? s.faults.join(", ") : "none";
     $("faults").className = s.faults.length ? "faults" : "ok";
+    $("degraded").textContent = s.degraded === "normal" ? "all sensors in use"
+      : s.degraded === "fail_safe_latched" ? "fail-safe latched until the next start (read the DTCs)"
+      : "one sensor out: driving on the others" + (s.degraded === "sensor_out_latched"
+        ? " until the next start" : "") + " (read the DTCs)";
+    $("degraded").className = s.degraded === "normal" ? "ok" : "faults";
     $("sent").textContent = s.sent.map(e => e.t_s.toFixed(1) + " s " + e.kind + " " + e.mode).join("; ")
       + (s.queued ? " (+" + s.queued + " queued)" : "");
   } catch (e) { $("why").textContent = "the app node is not answering (run over?)"; }

@@ -30,7 +30,7 @@ from hil.kernels.bus import (M_CMD, M_EST, M_REC, M_SENSORS, M_SPEED, M_STATUS,
                              S_REQ_RX, U_DTD_EST, U_DUTY, U_ENABLE, U_FAULTS, U_FORCE, U_GQ,
                              U_ID, U_KIND, U_MODE, U_REC, U_REC_ACTIVE, U_REC_GRADE,
                              U_REC_OVERRIDE, U_REC_REASON, U_REGEN, U_ROAD_EST, U_SENS, U_SEQ,
-                             U_SPEED, U_ST_ACTIVE, U_ST_BA, U_ST_DTD, U_ST_GRADE, U_ST_REASON,
+                             U_SPEED, U_ST_ACTIVE, U_ST_BA, U_ST_DTD, U_ST_GRADE, U_ST_REASON, U_ST_DEGRADED,
                              U_SUPPLY)
 
 ECU_NODE = np.dtype([
@@ -182,6 +182,7 @@ def tick(Ea, M, F, FAULT_BITS, RX, SEC, crypto, P, T, S, I, O, sample, c0, c1, c
             w = kf.put(w, F[U_FAULTS + j], 1 if E.status_faults & FAULT_BITS[j] else 0)
         w = kf.put(w, F[U_ST_BA], o.ba_rms_mmps2)
         w = kf.put(w, F[U_ST_DTD], (o.dtd_rms_um + 5) // 10)
+        w = kf.put(w, F[U_ST_DEGRADED], o.degraded)
         _frame(E, M, M_STATUS, out[nf], w, True)
         out_mi[nf] = M_STATUS
         E.status_faults = 0
@@ -245,7 +246,7 @@ def record(Ea, I, O, hashbuf, pos, row) -> int:
     p = _wr(hashbuf, p, o.faults, 4)
     p = _wr(hashbuf, p, o.events, 1)
     p = _wr(hashbuf, p, o.override, 1)
-    p = _wr(hashbuf, p, 0, 1)                                 # (reserved)
+    p = _wr(hashbuf, p, o.degraded, 1)
     p = _wr(hashbuf, p, o.force_cmd_n, 4)
     p = _wr(hashbuf, p, o.road_est_um, 4)
     p = _wr(hashbuf, p, o.dtd_est_um, 4)

@@ -26,15 +26,16 @@ from hil.transport import secoc
 from hil.transport.codec import Codec
 
 # What the trace hash takes per tick, in this order: the ECU's inputs, then its outputs, each
-# packed little-endian with its struct code. The two "reserved" fields are always 0; they stay
-# so that every recorded trace hash (tests/golden, earlier reports) stays valid.
+# packed little-endian with its struct code. The "reserved" field is always 0 and "degraded"
+# (firmware.diag.degrade, a reserved byte before) is 0 while no sensor is out: every trace hash
+# recorded before (tests/golden, earlier reports) stays valid.
 HASHED = (
     ("tick", "q"), ("body_accel", "i"), ("wheel_accel", "i"), ("susp_defl", "i"),
     ("motor_current", "i"), ("speed", "i"), ("supply", "i"),   # counts as received, -1: none
     ("req_kind", "i"), ("req_mode", "i"), ("req_counter", "i"), ("link_faults", "I"),
     ("duty_q15", "i"), ("regen", "B"), ("enable", "B"), ("recommended_mode", "B"),
     ("active_mode", "B"), ("grade", "B"), ("reason", "B"), ("faults", "I"), ("events", "B"),
-    ("override", "B"), ("reserved", "B"), ("force_cmd_n", "i"), ("road_est_um", "i"),
+    ("override", "B"), ("degraded", "B"), ("force_cmd_n", "i"), ("road_est_um", "i"),
     ("dtd_est_um", "i"), ("gq_est_log_c", "i"), ("ba_rms_mmps2", "i"), ("dtd_rms_um", "i"),
     ("reserved", "i"))
 HASHED_ROW = struct.Struct("<" + "".join(code for _, code in HASHED))

@@ -101,14 +101,16 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         on_frame: Optional[Callable[[int, bytes], None]] = None,
         duration_s: Optional[float] = None, fixed_point: bool = False,
         fx_record: Optional[list] = None, key: Optional[bytes] = None,
-        hashed: Optional[bytearray] = None, compiled: bool = True) -> tuple[dict, SilTrace]:
+        hashed: Optional[bytearray] = None, compiled: bool = True,
+        leave_out: Optional[str] = None) -> tuple[dict, SilTrace]:
     """Run the SIL. Returns (report dict, per-tick trace). ``on_frame(id, data)`` sees every
     frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
     control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs); ``key``: the
     SecOC key (default: a new one for this run); ``hashed`` (a bytearray) receives every
     tick's row of the trace hash (``hil.nodes.HASHED``), the per-tick golden traces;
     ``compiled``: the compiled lockstep loop (``hil.nodes.fastsil``) where it covers the run, else
-    (and with False) the nodes of ``hil.nodes`` frame by frame: the same bytes."""
+    (and with False) the nodes of ``hil.nodes`` frame by frame: the same bytes; ``leave_out``:
+    the ECU starts with this sensor out (``firmware.ecu.Ecu.leave_out``)."""
     check_route(cfg, route)
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
@@ -120,6 +122,8 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     ecu_node = EcuNode(p, codec, lockstep=True, fixed_point=fixed_point,
                        record=fx_record is not None, key=key)
     ecu_node.hashed = hashed
+    if leave_out is not None:
+        ecu_node.state.leave_out(leave_out)
     app = app_node(codec, mode, p.dt_s, policy, script, key=key)
     if compiled and fastsil.eligible(plant, ecu_node, app) is None:
         bus = fastsil.run(plant, ecu_node, app, on_frame=on_frame, progress=progress)

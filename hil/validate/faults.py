@@ -233,7 +233,7 @@ def _read_memory(node) -> dict:
                         **({"snapshot": {"tick": snap.tick, "speed_mps": None
                                          if snap.speed_cmps == 0xFFFF else snap.speed_cmps / 100}}
                            if snap else {})})
-    fw.clear(node.state.diag.dtc, 0xFFFFFF)
+    node.state.diag.clear(0xFFFFFF)
     return {"dtcs": out}
 
 
