@@ -73,8 +73,7 @@ class Outputs(NamedTuple):
     gq_est_log_c: int        # log4(G_q / G_q,A) * 100 (A = 0, B = 100, ...), -32768 if unknown
     ba_rms_mmps2: int        # body acceleration RMS over the grade window, mm/s^2
     dtd_rms_um: int          # tyre deflection RMS (road-holding check), micrometres
-    degraded: int = 0        # firmware.diag.degrade.STATE_* (normal, a sensor out, fail-safe
-    #                          latched, a sensor out to the cycle's end)
+    degraded: int = 0        # firmware.diag.degrade.STATE_* (ECU_STATUS.DEGRADED)
 
 
 # an ADC channel or a frame of the receive path was bad: the filter ran on held values

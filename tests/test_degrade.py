@@ -182,3 +182,31 @@ def test_the_state_on_the_bus_and_in_the_app():
     assert d["degraded"] == "sensor_out" and "not kept without it" in d["why"]
     d = describe({"DEGRADED": 2, "REASON": REASON_FAULT}, 1.0)
     assert d["degraded"] == "fail_safe_latched" and "latched" in d["why"]
+
+
+def test_the_campaign_judges_what_degraded_operation_did():
+    """``hil faults``' judge (``degraded_seen``): a sensor fault holds only with its sensor
+    out and the bridge driven in the drive's mode meanwhile (the current's: the bridge
+    open); an actuator fault only with no sensor out."""
+    from hil.faults.base import Evidence, Window
+    from hil.faults.registry import BY_NAME
+    from hil.faults.sensors import degraded_seen
+
+    n = 100
+
+    def ev(states, enable=True, mode=MODE_COMFORT):
+        d = np.zeros(n, np.int8)
+        d[40:60] = states
+        return Evidence(Window("ba_bias", "plant", 10, 30), [10, 39, 0], n, np.zeros(n),
+                        np.full(n, enable), np.full(n, mode), np.zeros(n, bool), {}, [],
+                        False, MODE_COMFORT, degraded=d)
+
+    assert degraded_seen(ev(degrade.STATE_DEGRADED)) == "out, driven on"
+    assert degraded_seen(ev(degrade.STATE_DEGRADED, enable=False)) == "out, bridge open"
+    assert degraded_seen(ev(degrade.STATE_DEGRADED, mode=MODE_PASSIVE)) == "out"
+    assert degraded_seen(ev(degrade.STATE_NORMAL)) == "normal"
+    assert degraded_seen(ev(degrade.STATE_FAIL_SAFE)) == "fail-safe latched"
+    assert degraded_seen(ev(degrade.STATE_LATCHED)) == "out to the cycle's end"
+    assert BY_NAME["ba_bias"].degraded == "out, driven on"
+    assert BY_NAME["current_stuck"].degraded == "out, bridge open"
+    assert BY_NAME["open_winding"].degraded == "normal"

@@ -52,6 +52,8 @@ class Result:
     #                                   only), "not isolated" (no part: the bank could not
     #                                   tell), "wrong" (a healthy part), None (no DTC)
     snapshot_ok: Optional[bool] = None  # its snapshot: in the window, the drive's speed
+    degraded: Optional[str] = None    # plausible faults: what degraded operation did in the
+    #                                   segment (hil.faults.sensors.degraded_seen)
 
 
 @dataclass
@@ -73,6 +75,7 @@ class Evidence:
     mode: int
     hub_log: str = ""
     dtc_read: Optional[dict] = None
+    degraded: Optional[np.ndarray] = None   # the ECU's degraded state per tick
 
     @property
     def first(self) -> int:

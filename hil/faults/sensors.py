@@ -9,6 +9,7 @@ from typing import Optional
 
 from calib.fdi_bank import CHANNEL
 from firmware import safety
+from firmware.diag import degrade as fd
 from firmware.diag import dtc as fw
 from hil.faults.base import (CAMPAIGN_SPEED_MPS, MAX_PLAUSIBLE_TICKS, PLAUSIBLE_TICKS,
                              SNAPSHOT_SPEED_TOL_MPS, Evidence, Fault, Result, Window, memo,
@@ -31,7 +32,14 @@ class Plausible(Fault):
     def judge(self, ev: Evidence) -> Result:
         r = super().judge(ev)
         judge_dtcs(r, self, ev.first, ev.window, ev.dtc_read)
+        r.degraded = degraded_seen(ev)
         return r
+
+    @property
+    def degraded(self) -> str:
+        """What degraded operation must do in the segment (``degraded_seen``): no sensor
+        out for a fault of the actuator or the supply."""
+        return "normal"
 
     @property
     def part(self) -> str:
@@ -40,16 +48,17 @@ class Plausible(Fault):
 
     def holds(self, r: Result) -> bool:
         return (super().holds(r) and bool(r.dtc) and r.snapshot_ok and r.isolated is not False
-                and r.isolation != "wrong")
+                and r.isolation != "wrong" and r.degraded == self.degraded)
 
     def limit_text(self, r: Result) -> str:
         return (super().limit_text(r) + ", DTC confirmed with its snapshot"
-                + (f", {self.dtc}" if self.dtc else ""))
+                + (f", {self.dtc}" if self.dtc else "") + f", degraded: {self.degraded}")
 
     def value_text(self, r: Result) -> str:
         return (super().value_text(r) + f"; DTC {', '.join(r.dtc or []) or 'none'}"
                 + ("" if r.snapshot_ok else ", snapshot wrong or missing")
-                + (f", isolation {r.isolation}" if r.isolation not in (None, "right") else ""))
+                + (f", isolation {r.isolation}" if r.isolation not in (None, "right") else "")
+                + (f", degraded: {r.degraded}" if r.degraded != self.degraded else ""))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -66,6 +75,12 @@ class SensorFault(Plausible):
     @property
     def part(self) -> str:
         return self.channel                       # (the channels are named as the parts)
+
+    @property
+    def degraded(self) -> str:
+        """Its sensor out and the ECU driving on in the campaign's mode (comfort, kept
+        without BA, WA or SWS); the motor current out: no mode, the bridge open."""
+        return "out, bridge open" if self.channel == "current" else "out, driven on"
 
     def after_emit(self, inj, plant, frames, w: Window):
         sig = SIGNAL[self.channel]
@@ -86,6 +101,25 @@ class SensorFault(Plausible):
         frames[-1] = reencode(plant.codec, frames[-1], **{sig: min(full, max(0, int(v)))})
         inj.mark(self.name, plant.k)
         return frames
+
+
+def degraded_seen(ev: Evidence) -> str:
+    """What degraded operation (``firmware.diag.degrade``) did in a fault's segment: "normal"
+    (no sensor out), "out, driven on" (a sensor out and the bridge driven in the drive's
+    mode meanwhile), "out, bridge open", "out" (neither), "out to the cycle's end",
+    "fail-safe latched"."""
+    d = ev.degraded[ev.seg]
+    if (d == fd.STATE_FAIL_SAFE).any():
+        return "fail-safe latched"
+    if (d == fd.STATE_LATCHED).any():
+        return "out to the cycle's end"
+    out = d == fd.STATE_DEGRADED
+    if not out.any():
+        return "normal"
+    enable, modes = ev.enable[ev.seg][out], ev.modes[ev.seg][out]
+    if (enable & (modes == ev.mode)).any():
+        return "out, driven on"
+    return "out, bridge open" if not enable.any() else "out"
 
 
 def judge_dtcs(r: Result, spec: Fault, first: int, w: Window, read: Optional[dict]) -> None:

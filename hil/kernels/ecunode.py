@@ -257,4 +257,5 @@ def record(Ea, I, O, hashbuf, pos, row) -> int:
     row[0], row[1], row[2], row[3], row[4] = (o.road_est_um, o.dtd_est_um, o.force_cmd_n,
                                               o.grade, o.active_mode)
     row[5], row[6], row[7], row[8] = o.recommended_mode, o.faults, o.enable, o.reason
+    row[9] = o.degraded
     return p

@@ -41,7 +41,7 @@ HASHED = (
 HASHED_ROW = struct.Struct("<" + "".join(code for _, code in HASHED))
 # the ECU's per-tick trace columns (int64 rows of EcuNode.rows)
 ECU_TRACE = ("road_est_um", "dtd_est_um", "force_cmd_n", "grade", "active_mode",
-             "recommended_mode", "faults", "enable", "reason")
+             "recommended_mode", "faults", "enable", "reason", "degraded")
 
 # the ECU's receive table: message -> (its receiver's row, its message index), hil.kernels.bus
 _RX_ROWS = {"VEHICLE_SPEED": (kb.R_SPEED, kb.M_SPEED),
@@ -302,4 +302,4 @@ class EcuNode:
                 "force_cmd": c[2].astype(float), "grade_est": c[3].astype(np.int16),
                 "mode": c[4].astype(np.int8), "recommended": c[5].astype(np.int8),
                 "faults": c[6].astype(np.int32), "enable": c[7].astype(bool),
-                "reason": c[8].astype(np.int8)}
+                "reason": c[8].astype(np.int8), "degraded": c[9].astype(np.int8)}

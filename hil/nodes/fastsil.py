@@ -35,7 +35,7 @@ from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
 from hil.kernels import silloop as kl
-from hil.nodes import ID, REQ_KINDS, AppNode, EcuNode, PlantNode, run_in_process
+from hil.nodes import ECU_TRACE, ID, REQ_KINDS, AppNode, EcuNode, PlantNode, run_in_process
 from hil.transport import secoc
 
 CHUNK = 16384            # ticks between Python's turns (a multiple of the noise block, 256)
@@ -169,7 +169,7 @@ class _Loop:
         self.true_grade = np.ascontiguousarray(plant.true_grade, dtype=np.int64)
         self.segment = np.ascontiguousarray(plant.timeline.segment, dtype=np.int64)
         self.speed = np.ascontiguousarray(plant.timeline.speed_mps, dtype=float)
-        self.rows = np.zeros((n, 9), np.int64)
+        self.rows = np.zeros((n, len(ECU_TRACE)), np.int64)
         self.hashbuf = np.zeros(CHUNK * kl.ROW_BYTES, np.uint8)
         self.reqlog = np.zeros((CHUNK, 3), np.int64)
         self.fslog = np.zeros((CHUNK, 3), np.int64)

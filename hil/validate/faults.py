@@ -57,6 +57,7 @@ def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
     faults = np.asarray(ecu_tr["faults"], dtype=np.int64)
     enable = np.asarray(ecu_tr["enable"], dtype=bool)
     modes = np.asarray(ecu_tr["mode"])
+    degraded = np.asarray(ecu_tr["degraded"])
     fallback = np.asarray(plant_tr["fallback"], dtype=bool)
     n = min(len(faults), len(fallback))
     out = []
@@ -71,7 +72,7 @@ def judge(windows: list[Window], ecu_tr: dict, plant_tr: dict, applied: dict,
             continue
         out.append(spec.judge(Evidence(w, a, end, faults, enable, modes, fallback, plant_tr,
                                        faults_seen, crashed, mode, hub_log,
-                                       (dtcs or {}).get(w.name))))
+                                       (dtcs or {}).get(w.name), degraded)))
     return out
 
 
