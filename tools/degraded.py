@@ -1,7 +1,7 @@
 """Degraded operation measured: what each mode keeps with one sensor out (docs/degraded.md).
 
     python -m tools.degraded [--vehicle FILE] [--design FILE] [--seeds 1 2 3]
-                             [--seconds 60] [--speed 20] [--json] [--check]
+                             [--seconds 60] [--speed 20] [--json]
 
 For each sensor the ECU can drive without (``firmware.diag.degrade``: body accelerometer,
 wheel accelerometer, deflection sensor) and each mode on its own grade's road (energy
@@ -12,8 +12,8 @@ passive car, the energy harvested, the run's verdict. A mode is **kept** without
 on every seed its drive passes its verdict (no fail-safe, no DTC) and does what the mode does
 with every sensor: no ratio more than ``MARGIN`` above that drive's, at least
 ``HARVEST_SHARE`` of its harvest. Every mode is allowed for the measurement;
-the calibration's ``degraded_modes_*`` options say which the ECU keeps. ``--check`` exits 1
-when the calibration keeps a mode the measurement does not (keeping fewer is allowed).
+the calibration's ``degraded_modes_*`` options say which the ECU keeps. The verdict (exit 1)
+fails when the calibration keeps a mode the measurement does not (keeping fewer is allowed).
 """
 
 from __future__ import annotations
@@ -110,15 +110,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--seconds", type=positive_float, default=60.0)
     ap.add_argument("--speed", type=positive_float, default=20.0)
-    ap.add_argument("--check", action="store_true",
-                    help="exit 1 when the calibration keeps a mode the measurement does not")
     add_json_argument(ap)
     args = ap.parse_args(argv)
     cfg, opts = vehicle_or_exit(args.vehicle), design_or_exit(args.design) or DesignOptions()
     with progress_bar("degraded drives", not args.json) as progress:
         out = measure(cfg, opts, args.seeds, args.seconds, args.speed, progress)
     emit(out, args.json, _render)
-    return EXIT_DIFFERS if args.check and not out["agrees"] else 0
+    return 0 if out["agrees"] else EXIT_DIFFERS
 
 
 if __name__ == "__main__":
