@@ -20,8 +20,8 @@ from calib.errors import ConfigError
 from calib import fdi_bank
 from calib.fdi_design import fdi_params
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_intensity_per_mps
-from calib.model import (filter_discrete, linear_model, paper_thresholds, state_covariance,
-                         zoh_input)
+from calib.model import (filter_continuous, filter_discrete, linear_model, paper_thresholds,
+                         state_covariance, zoh_input)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from calib.vehicle import VehicleConfig
 from firmware import params as fp
@@ -32,8 +32,7 @@ def akf_model(cfg: VehicleConfig, opts: DesignOptions, convention: str = "iso") 
     dt = opts.dt_s
     A, B, phi, gamma, q_unit = filter_discrete(cfg, dt)
     road_int = road_intensity_per_mps(GRADE_GQ_M3[opts.akf_q_grade], convention)
-    rows_H = [A[0], np.array([0, 0, 1.0, -1.0, 0]), A[1]]
-    rows_D = [1.0 / vp.sprung_mass_kg, 0.0, -1.0 / vp.unsprung_mass_kg]
+    rows_H, rows_D = model_outputs(cfg, A)
     chans = [cfg.sensors.body_accel, cfg.sensors.susp_defl, cfg.sensors.wheel_accel]
     m = 3 if opts.use_wheel_accel else 2
     H = np.array(rows_H[:m])
@@ -132,21 +131,27 @@ def degraded_modes(text: str, key: str) -> int:
     return bits
 
 
-def degrade_params(cfg: VehicleConfig, opts: DesignOptions) -> fp.DegradeParams:
-    """Degraded operation (``firmware.diag.degrade``): the model's output of each sensor for
-    the virtual sensor (the filter's state [zs', zt', zs, zt, zf]; the force u known), and the
-    modes kept without each (the motor current: none)."""
-    A, _, _, _, _ = filter_discrete(cfg, opts.dt_s)
+def model_outputs(cfg: VehicleConfig, A: np.ndarray) -> tuple[list, list]:
+    """The filter model's outputs (``A``: ``filter_continuous``'s, the state [zs', zt', zs, zt,
+    zf]) in the filter's measurement order BA, SWS, WA: their rows of H and D (the known
+    force's feedthrough)."""
     vp = cfg.vehicle
-    H = np.array([A[0], A[1], [0, 0, 1.0, -1.0, 0]])
-    D = np.array([1.0 / vp.sprung_mass_kg, -1.0 / vp.unsprung_mass_kg, 0.0])
+    return ([A[0], np.array([0, 0, 1.0, -1.0, 0]), A[1]],
+            [1.0 / vp.sprung_mass_kg, 0.0, -1.0 / vp.unsprung_mass_kg])
+
+
+def degrade_params(cfg: VehicleConfig, opts: DesignOptions, A: np.ndarray
+                   ) -> fp.DegradeParams:
+    """Degraded operation (``firmware.diag.degrade``): the model's output of each sensor for
+    the virtual sensor (``model_outputs`` in the ADC's order BA, WA, SWS), and the modes kept
+    without each (the motor current: none)."""
+    rows_H, rows_D = model_outputs(cfg, A)
+    order = (0, 2, 1)
     modes = tuple(degraded_modes(getattr(opts, f"degraded_modes_{name}"),
                                  f"degraded_modes_{name}")
                   for name in ("body_accel", "wheel_accel", "susp_defl")) + (0,)
-    sp = cfg.sensors
-    noise_var = np.array([c.variance for c in (sp.body_accel, sp.wheel_accel, sp.susp_defl,
-                                         sp.motor_current)])
-    return fp.DegradeParams(H=H, D=D, modes=modes, noise_var=noise_var,
+    return fp.DegradeParams(H=np.array([rows_H[i] for i in order]),
+                            D=np.array([rows_D[i] for i in order]), modes=modes,
                             readmit_ticks=int(round(opts.degraded_readmit_s / opts.dt_s)),
                             readmissions=opts.degraded_readmissions)
 
@@ -219,7 +224,7 @@ def _build(cfg: VehicleConfig, opts: DesignOptions | None, gains_file: Path | No
                         actuator=actuator, akf_q_follows_grade=opts.akf_q_follows_grade,
                         akf_q_gq_nominal=GRADE_GQ_M3[opts.akf_q_grade],
                         fdi=fdi_params(cfg, opts), bank=fdi_bank.bank_params(cfg, opts),
-                        degrade=degrade_params(cfg, opts),
+                        degrade=degrade_params(cfg, opts, filter_continuous(cfg)[0]),
                         software_version=SOFTWARE_VERSION,
                         calibration_sha256=bytes.fromhex(inputs_digest(cfg, gains_file, opts)),
                         vehicle_sha256=_vehicle_sha256(cfg))

@@ -262,6 +262,5 @@ class DegradeParams:
     H: np.ndarray                # (3, 5) the model's output of BA, WA, SWS (ADC order) ...
     D: np.ndarray                # (3,) ... and its force feedthrough
     modes: tuple[int, ...]       # per sensor out (BA, WA, SWS, current): bits of the modes kept
-    noise_var: np.ndarray        # (4,) each sensor's noise variance (SI^2, quantisation in)
     readmit_ticks: int           # a sensor out that agrees again this long is used again ...
     readmissions: int            # ... this often per operation cycle (then it stays out)

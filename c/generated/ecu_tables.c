@@ -877,18 +877,6 @@ const uint8_t DEGRADE_MODES[4] = {
     14, 6, 14, 0
 };
 
-const float DEGRADE_NOISE_VAR_F32[4] = {
-    0.000417890114f, 0.0117890127f, 1.01987796e-08f, 0.0104472535f
-};
-
-const int32_t DEGRADE_NOISE_VAR_Q31[4] = {
-    1837900219, 1620269579, 1469798982, 1435859546
-};
-
-const int8_t DEGRADE_NOISE_VAR_Q31_FRAC[4] = {
-    42, 37, 57, 37
-};
-
 const int8_t FX_STATE_FRAC[5] = {
     24, 24, 28, 28, 28
 };

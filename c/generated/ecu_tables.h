@@ -455,10 +455,6 @@ extern const int32_t DEGRADE_D_Q31[3];
 extern const int8_t DEGRADE_D_Q31_FRAC[3];
 #define DEGRADE_MODES_LEN 4
 extern const uint8_t DEGRADE_MODES[4];
-#define DEGRADE_NOISE_VAR_LEN 4
-extern const float DEGRADE_NOISE_VAR_F32[4];
-extern const int32_t DEGRADE_NOISE_VAR_Q31[4];
-extern const int8_t DEGRADE_NOISE_VAR_Q31_FRAC[4];
 #define DEGRADE_READMIT_TICKS 2000
 #define DEGRADE_READMISSIONS 1
 

@@ -43,8 +43,10 @@ import math
 import numpy as np
 
 from firmware import adc
+from firmware.akf import MEASURED
 from firmware.diag import bank, fdi
 from firmware.kernels import njit
+from firmware.params import MODE_NAMES
 from firmware.util import pymin
 from firmware.util import round_half_away as rha
 
@@ -63,8 +65,9 @@ DETECTIONS = (fdi.NIS_TESTS | fdi.ACT_TESTS | (1 << fdi.T_FLAT_BA) | (1 << fdi.T
               | (1 << fdi.T_FLAT_SWS) | (1 << fdi.T_FLAT_CUR))
 # the state on the bus (ECU_STATUS.DEGRADED) and in DID 0x0107
 STATE_NORMAL, STATE_DEGRADED, STATE_FAIL_SAFE, STATE_LATCHED = 0, 1, 2, 3
-Z_INDEX = (0, 2, 1, -1)                  # each sensor's row in the filter's z (BA, SWS, WA)
-ALL_MODES = 0x1F                         # bit m: mode m (firmware.params.MODE_*)
+STATE_NAMES = ("normal", "sensor_out", "fail_safe_latched", "sensor_out_latched")  # (the DBC's)
+Z_INDEX = tuple(MEASURED.index(c) if c in MEASURED else -1 for c in CHANNEL)   # its z row
+ALL_MODES = (1 << len(MODE_NAMES)) - 1   # bit m: mode m (firmware.params.MODE_*)
 
 STATE = np.dtype([
     ("sensor", "i8"),                    # the sensor out (NONE: all in use)
@@ -92,12 +95,19 @@ def init(S) -> None:
 
 @njit
 def state_code(S) -> int:
-    """ECU_STATUS.DEGRADED: normal, one sensor out, or the fail-safe latched."""
-    if S.failsafe:
+    """ECU_STATUS.DEGRADED of the state record ``S`` (``code``)."""
+    return code(S.failsafe, S.sensor, S.latched)
+
+
+@njit
+def code(failsafe: bool, sensor: int, latched: bool) -> int:
+    """ECU_STATUS.DEGRADED (and DID 0x0107's state): normal, a sensor out, the fail-safe
+    latched, a sensor out to the cycle's end (``STATE_NAMES``)."""
+    if failsafe:
         return STATE_FAIL_SAFE
-    if S.sensor == NONE:
+    if sensor == NONE:
         return STATE_NORMAL
-    return STATE_LATCHED if S.latched else STATE_DEGRADED
+    return STATE_LATCHED if latched else STATE_DEGRADED
 
 
 @njit
@@ -153,7 +163,7 @@ def watch(P, S, force_meas: float, rho: float) -> None:
     if j == NONE or D.latched or not math.isfinite(D.reading):
         return
     if j == CURRENT:
-        resid, var = D.reading, P.degrade.noise_var[j]
+        resid, var = D.reading, F.cur_sigma_a * F.cur_sigma_a
     else:
         z = Z_INDEX[j]
         if z >= S.akf.R.shape[0]:

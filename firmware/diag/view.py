@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from firmware.diag import SESSION_DEFAULT, dtc
+from firmware.diag import SESSION_DEFAULT, degrade, dtc
 from firmware.diag.dtc import Snapshot
 
 _ROW = ("status", "fdc", "passes", "occurrences", "aging", "first_tick")
@@ -110,7 +110,7 @@ class DiagView:
         """(state, sensor out, the tick it went out, the second fault's tick): -1 for none
         (``firmware.diag.degrade``)."""
         d = self._s["degrade"]
-        state = 2 if d["failsafe"] else 0 if d["sensor"] < 0 else 3 if d["latched"] else 1
+        state = degrade.code(bool(d["failsafe"]), int(d["sensor"]), bool(d["latched"]))
         return state, int(d["sensor"]), int(d["since"]), int(d["second"])
 
     @property

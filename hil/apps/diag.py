@@ -154,12 +154,11 @@ def read_dids(client) -> dict:
 
 def _degraded(raw: bytes) -> dict:
     """DID 0x0107 (firmware.diag.uds): the degraded state, the sensor out, the ticks."""
-    from firmware.diag.degrade import SENSOR_NAMES
+    from firmware.diag.degrade import SENSOR_NAMES, STATE_NAMES
 
     none = 0xFFFFFFFF
     since, second = int.from_bytes(raw[2:6], "big"), int.from_bytes(raw[6:10], "big")
-    states = ("normal", "sensor_out", "fail_safe_latched", "sensor_out_latched")
-    return {"state": states[raw[0]] if raw[0] < len(states) else raw[0],
+    return {"state": STATE_NAMES[raw[0]] if raw[0] < len(STATE_NAMES) else raw[0],
             "sensor_out": SENSOR_NAMES[raw[1]] if raw[1] < len(SENSOR_NAMES) else None,
             "since_tick": None if since == none else since,
             "second_fault_tick": None if second == none else second}

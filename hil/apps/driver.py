@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from firmware import modes as fm
 from firmware import safety
+from firmware.diag.degrade import STATE_NAMES
 from firmware.params import GRADE_NAMES, MODE_NAMES
 from hil.transport.codec import fault_word
 
@@ -14,10 +15,6 @@ from hil.transport.codec import fault_word
 SUITS = {"energy": "a smooth road: harvest energy", "comfort": "ride comfort first",
          "safety": "road holding first", "comprehensive": "a rough road: comfort and road "
          "holding together"}
-
-
-# ECU_STATUS.DEGRADED (firmware.diag.degrade): normal, one sensor out, the fail-safe latched
-DEGRADED = ("normal", "sensor_out", "fail_safe_latched", "sensor_out_latched")
 
 
 def name_of(names, value, unknown):
@@ -32,7 +29,7 @@ def describe(view: dict, t_s: float) -> dict:
                                         view.get("ESTIMATED_GRADE")), "unknown")
     reason = int(view.get("REC_REASON", view.get("REASON", fm.REASON_NONE)) or 0)
     faults = safety.fault_names(fault_word(view))
-    degraded = DEGRADED[int(view.get("DEGRADED", 0) or 0) % len(DEGRADED)]
+    degraded = STATE_NAMES[int(view.get("DEGRADED", 0) or 0) % len(STATE_NAMES)]
     if degraded == "fail_safe_latched":
         why = ("fail-safe latched: a second fault while a sensor was out (passive damping "
                "until the next start; read the DTCs)")
