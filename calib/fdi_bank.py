@@ -115,8 +115,10 @@ def check_options(opts: DesignOptions) -> None:
         raise ValueError(f"fdi_bank_window must be 1-100000 ticks, got {opts.fdi_bank_window}")
 
 
-def generators(cfg: VehicleConfig, opts: DesignOptions) -> dict[str, Generator]:
-    """The bank for this vehicle: {blind sensor (or "full"): Generator}."""
+def generators(cfg: VehicleConfig, opts: DesignOptions,
+               bridge_open: bool = False) -> dict[str, Generator]:
+    """The bank for this vehicle: {blind sensor (or "full"): Generator}. ``bridge_open``:
+    the winding model's filters as they run with the bridge open (``_open``)."""
     check_options(opts)
     A5, B5, phi5, gamma5, q_unit5 = filter_discrete(cfg, opts.dt_s)
     design_q = road_intensity_per_mps(GRADE_GQ_M3[opts.akf_q_grade]) * NOMINAL_SPEED_MPS
@@ -157,8 +159,32 @@ def generators(cfg: VehicleConfig, opts: DesignOptions) -> dict[str, Generator]:
         g = Generator(blind=blind, reads=reads, phi=phi, gamma=gamma, gamma_force=gamma_f,
                       H=H, D=D, D_force=D_f, K=K, r0=r0, q_unit=q_unit, q_fixed=q_fixed,
                       S_road=S_road, S_noise=S_noise, S_force=S_force, force_per_amp=kf)
-        out[blind] = g
+        out[blind] = _open(g, phi5, gamma5, q_unit5, design_q) if (
+            bridge_open and g.phi.shape[0] == 7) else g
     return out
+
+
+def _open(g: Generator, phi5, gamma5, q_unit5, design_q: float) -> Generator:
+    """A winding-model filter with the bridge open: no current flows, so neither the
+    current nor the voltage offset (which drives nothing then) is a state; the car's five
+    states are predicted without the actuator and corrected with the steady-state gain of
+    that model. The current it reads is its sensor's noise alone (its gain column zero), so
+    a current sensor reading a current then is plainly wrong. Designed apart from the
+    driven filter: that one's gain counts on the winding's back-EMF as a measurement of the
+    relative velocity, and with it the filter blind to WA sat above its level (1.1-1.2
+    against 1.163) in fault-free passive driving."""
+    H = g.H[:, :5]
+    P = solve_discrete_are(phi5.T, H.T, design_q * q_unit5, g.r0)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + g.r0)
+    a_e = phi5 @ (np.eye(5) - K @ H)
+    zero = np.zeros((5, 5))
+    return Generator(
+        blind=g.blind, reads=g.reads, phi=phi5, gamma=np.zeros(5), gamma_force=gamma5,
+        H=H, D=np.zeros(len(g.reads)), D_force=g.D_force, K=K, r0=g.r0, q_unit=q_unit5,
+        q_fixed=zero, S_road=_cov_lyap(a_e, H, q_unit5),
+        S_noise=_cov_lyap(a_e, H, phi5 @ K @ g.r0 @ K.T @ phi5.T) + g.r0,
+        S_force=_cov_response(a_e, H, gamma5 - phi5 @ K @ g.D_force, g.D_force),
+        force_per_amp=g.force_per_amp)
 
 
 def winding_continuous(cfg: VehicleConfig, A5: np.ndarray, B5: np.ndarray) -> np.ndarray:
@@ -234,8 +260,9 @@ def bank_params(cfg: VehicleConfig, opts: DesignOptions):
 
     if opts.fdi_bank_structure != "voltage":
         raise ValueError("the firmware's bank runs the voltage structure only")
-    bank = generators(cfg, opts)
+    bank, bank_open = generators(cfg, opts), generators(cfg, opts, bridge_open=True)
     gens = [bank[k] for k in SENSORS]
+    opens = [bank_open[k] for k in SENSORS]
     chan = {"ba": 0, "defl": 1, "wa": 2, "current": 3}
     w = opts.fdi_bank_window
     stack = lambda f: np.ascontiguousarray(np.array([f(g) for g in gens], dtype=float))  # noqa: E731
@@ -247,7 +274,13 @@ def bank_params(cfg: VehicleConfig, opts: DesignOptions):
         H=stack(lambda g: g.H),
         K=stack(lambda g: g.K), reads=tuple(chan[c] for g in gens for c in g.reads),
         S_road=stack(lambda g: g.S_road), S_noise=stack(lambda g: g.S_noise),
-        S_force=stack(lambda g: g.S_force), lam=2.0 / (w + 1),
+        S_force=stack(lambda g: g.S_force),
+        # (the open-bridge gains padded to the seven states: rows 5, 6 zero)
+        K_open=np.ascontiguousarray(np.array([np.pad(g.K, ((0, 2), (0, 0)))
+                                              for g in opens])),
+        S_road_open=np.ascontiguousarray(np.array([g.S_road for g in opens])),
+        S_noise_open=np.ascontiguousarray(np.array([g.S_noise for g in opens])),
+        lam=2.0 / (w + 1),
         level=chi2_level(3 * w, opts.fdi_false_alarm),
         confirm_ticks=int(round(opts.fdi_bank_confirm_s / opts.dt_s)),
         act_ticks=int(round(opts.fdi_bank_actuator_s / opts.dt_s)),

@@ -247,6 +247,9 @@ class BankParams:
     S_road: np.ndarray           # (4, 3, 3) innovation covariance per unit road intensity
     S_noise: np.ndarray          # (4, 3, 3) ... from the sensor and voltage noise
     S_force: np.ndarray          # (4, 3, 3) ... per N^2 of a white force error
+    K_open: np.ndarray           # (4, 7, 3) the gains with the bridge open (rows 5, 6 zero)
+    S_road_open: np.ndarray      # (4, 3, 3) ... and their innovation covariance
+    S_noise_open: np.ndarray     # (4, 3, 3)
     lam: float                   # the tests' EWMA weight ...
     level: float                 # ... and level: chi2_{3W}(1 - alpha) / (3W)
     confirm_ticks: int           # a sensor left alone this long is named

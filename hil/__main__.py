@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from hil import config
 from hil.cli import (add_cache_argument, add_design_argument, add_json_argument,
@@ -269,6 +270,23 @@ def _faults_parser(sub) -> None:
     p.add_argument("--seed", type=seed_arg, default=1)
     p.add_argument("--in-process", action="store_true",
                    help="the three nodes in one process instead of processes on a bus")
+    from hil.validate.alarms import seeds_arg
+    from hil.validate.sensorfaults import DEFAULT_SEEDS, DEFAULT_VEHICLES
+
+    s = p.add_argument_group("the sensor campaign (--sensors): every single-sensor fault of "
+                             "the isolability analysis, persistent, one SIL drive each")
+    s.add_argument("--sensors", action="store_true",
+                   help="run the sensor campaign instead of the bus campaign; writes "
+                        "DIR/sensor-faults.json and .md")
+    s.add_argument("--vehicle", metavar="FILES",
+                   help=f"comma-separated vehicle files (default: {','.join(DEFAULT_VEHICLES)})")
+    s.add_argument("--route", help="a route file or shipped name (default: one segment of "
+                                   "grade B at 20 m/s)")
+    s.add_argument("--seeds", type=seeds_arg, default=list(DEFAULT_SEEDS),
+                   help=f"N (1..N) or A-B (default: {DEFAULT_SEEDS[0]}-{DEFAULT_SEEDS[-1]}, "
+                        "held out from tuning)")
+    s.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="parallel processes (default: one per core)")
     add_bus_arguments(p)
     p.add_argument("--out", metavar="DIR", default="out/faults",
                    help="bus.log, node records and faults.json (default: out/faults)")
@@ -371,8 +389,14 @@ def _campaign(args) -> int:
 
 
 def _faults(args) -> int:
-    from hil.validate import faults
+    from hil.cli import fail
+    from hil.validate import faults, sensorfaults
 
+    if args.sensors:
+        return sensorfaults.main(args)
+    if args.vehicle or args.route:
+        fail("faults: --vehicle and --route are the sensor campaign's (--sensors); the bus "
+             "campaign drives the default car on its own route")
     return faults.main(args)
 
 

@@ -115,6 +115,22 @@ def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(re
     assert len(duties) > 1000   # the duty moves: the comparison is not of constants
 
 
+def test_c_is_bit_exact_through_a_sensor_left_out(replay_exe):
+    """A deflection sensor biased 3 mm from 2 s on: named, left out, the filter and the
+    controllers restarted (the hand-over's reset) and driven on in comfort; C follows."""
+    rec = []
+    cfg = default_vehicle()
+    sil.run(cfg, load_route("full_road_section"), "comfort", 2, fixed_point=True,
+            fx_record=rec, duration_s=6.0, sensor_fault=("susp_defl", "bias", 2000, 0.003))
+    resets = [k for k, (tin, _) in enumerate(rec) if tin.reset]
+    assert len(resets) == 1 and 2000 < resets[0] < 3000, resets
+    res = subprocess.run([str(replay_exe)], input=trace_text(rec), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    for k, (text, (_, out)) in enumerate(zip(res.stdout.splitlines(), rec)):
+        assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
+    assert len({out[0] for _, out in rec[resets[0]:]}) > 100   # (driven on after it)
+
+
 @pytest.mark.slow
 def test_c_fixed_point_path_is_bit_exact_with_bump_stops_and_lift_off(tmp_path):
     """Off the linear model: the bump stops' force (a known input from the measured stroke,

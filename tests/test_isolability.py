@@ -3,6 +3,7 @@ propagation of the innovations' mean and covariance checked against a Monte Carl
 filter itself, the bank's blindness, and the one physical equivalence the analysis rests on
 (a constant force error is invisible to the accelerometers)."""
 
+import math
 import dataclasses
 
 import numpy as np
@@ -13,7 +14,8 @@ from calib import fdi_bank as fb
 from calib.model import filter_continuous
 from calib.options import DesignOptions
 from hil.config import default_vehicle
-from tools import isolability as iso
+from calib import isolability as iso
+from tools import isolability as iso_tool
 
 CFG = default_vehicle()
 OPTS = DesignOptions()
@@ -124,8 +126,19 @@ def test_bank_options_refuse_bad_values():
 
 
 def test_cli_refuses_bad_input(capsys):
-    assert iso.main(["--grade", "Z"]) == 2
-    assert iso.main(["--speed", "-3"]) == 2
-    assert iso.main(["--walk", "0"]) == 2
+    assert iso_tool.main(["--grade", "Z"]) == 2
+    assert iso_tool.main(["--speed", "-3"]) == 2
+    assert iso_tool.main(["--walk", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("isolability:") == 3
+
+
+def test_clipped_square_matches_monte_carlo():
+    """The ECU tests' clipped square, E[min(Z^2, c^2)], against 400,000 draws per case (a
+    healthy innovation, one near the clip, one far above it); without a clip, var + mu^2."""
+    rng = np.random.default_rng(3)
+    for mu, var in ((0.0, 1.0), (4.0, 2.0), (40.0, 1.0)):
+        z = mu + math.sqrt(var) * rng.standard_normal(400_000)
+        mc = float(np.mean(np.minimum(z * z, 25.0)))
+        assert abs(iso.clipped_square(mu, var, 25.0) / mc - 1.0) < 0.01, (mu, var, mc)
+    assert iso.clipped_square(3.0, 2.0, math.inf) == 11.0

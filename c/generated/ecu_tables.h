@@ -434,6 +434,18 @@ extern const int8_t BANK_S_NOISE_Q31_FRAC[36];
 extern const float BANK_S_FORCE_F32[36];
 extern const int32_t BANK_S_FORCE_Q31[36];
 extern const int8_t BANK_S_FORCE_Q31_FRAC[36];
+#define BANK_K_OPEN_LEN 84
+extern const float BANK_K_OPEN_F32[84];
+extern const int32_t BANK_K_OPEN_Q31[84];
+extern const int8_t BANK_K_OPEN_Q31_FRAC[84];
+#define BANK_S_ROAD_OPEN_LEN 36
+extern const float BANK_S_ROAD_OPEN_F32[36];
+extern const int32_t BANK_S_ROAD_OPEN_Q31[36];
+extern const int8_t BANK_S_ROAD_OPEN_Q31_FRAC[36];
+#define BANK_S_NOISE_OPEN_LEN 36
+extern const float BANK_S_NOISE_OPEN_F32[36];
+extern const int32_t BANK_S_NOISE_OPEN_Q31[36];
+extern const int8_t BANK_S_NOISE_OPEN_Q31_FRAC[36];
 #define BANK_LAM_F32 0.00199800194f
 #define BANK_LAM_Q31 ((int32_t)1098413215)
 #define BANK_LAM_Q31_FRAC 39

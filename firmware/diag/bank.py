@@ -4,7 +4,8 @@
 Four fixed-gain filters on the winding model (``calib.fdi_bank``), filter k blind to sensor
 k (``BLIND``: BA, WA, SWS, current), each predicting with the voltage the bridge applied over
 the last step (an open bridge: no current, the current state held at zero) and correcting
-with the three channels it reads. Its whitened innovation nu' S^-1 nu / 3, S = q S_road +
+with the three channels it reads (the bridge open: the car's five states alone, with the gain
+and covariances of that model). Its whitened innovation nu' S^-1 nu / 3, S = q S_road +
 S_noise + var_F S_force exact for the fixed gain at the road intensity q the grade estimate
 gives (no Riccati step), goes through an EWMA against chi2_{3W}(1 - alpha) / (3W): above it
 the filter is inconsistent. The statistics hold, as the innovation tests' do, while the
@@ -16,8 +17,11 @@ so every filter found inconsistent during the episode clears the sensor it is bl
 * a flatline test fails: that channel, named by its own DTC;
 * the actuator test failed: it advances the back-EMF with BA - WA, so a fault of either can
   fool it; a BA or WA fault the bank names is named instead, else the actuator (stuck, or
-  open where the test found no current) once BA and WA are both cleared or ``act_ticks``
-  have passed;
+  open where the test found no current) once BA, WA and the current are cleared (the
+  current-blind filter found the force wrong, which no current sensor's fault does), or
+  after ``act_ticks`` where the bank cleared nothing or the current, unless the current's
+  reading was held or clipped in the episode; the current left alone (the current sensor or
+  the actuator), a partial picture or a clipped current: not isolated;
 * three sensors cleared and the fourth's filter consistent for ``confirm_ticks``: that
   sensor (``T_ISO_*``);
 * all four cleared (no single sensor fits), ``decide_ticks`` without a decision, or the
@@ -51,6 +55,7 @@ NONE, ISOLATED_BA, ISOLATED_WA, ISOLATED_SWS, ISOLATED_CUR, NOT_ISOLATED, BY_TES
 ACTUATOR_STUCK, ACTUATOR_OPEN = 6, 7     # the actuator test's conclusion stands
 ACT_STUCK_BIT, ACT_OPEN_BIT = 1, 2       # (``act``: which the actuator test found)
 SENSOR_BA, SENSOR_WA = 1 << 0, 1 << 1    # (the cleared bits of the actuator test's inputs)
+SENSOR_CUR = 1 << 3                      # (cleared: the current-blind filter saw the force)
 
 STATE = np.dtype([
     ("x", "f8", (N_FILTERS, N_STATES)),
@@ -70,6 +75,7 @@ STATE = np.dtype([
     ("reported", "u1"),                  # a decision was reported this tick
     ("act", "i8"),                       # the actuator test's findings in this episode ...
     ("act_since", "i8"),                 # ... since this tick
+    ("cur_held", "u1"),                  # the current's reading held or clipped in it
 ])
 
 
@@ -137,15 +143,20 @@ def filters(P, S, tick: int, z, held: int, volt: float, enabled: bool, intensity
         if skip:                             # (a channel it reads is an old value)
             S.invalid_until = max(S.invalid_until, tick + P.fdi.hold_ticks)
             continue
+        # the gain and covariance of the bridge's state over the step (``K_open``: the
+        # car's five states alone, the winding's rows zero)
+        s_road = B.S_road[k] if enabled else B.S_road_open[k]
+        s_noise = B.S_noise[k] if enabled else B.S_noise_open[k]
+        gain = B.K[k] if enabled else B.K_open[k]
         for r in range(N_READS):
             for j in range(N_READS):
-                Sm[r, j] = (intensity * B.S_road[k, r, j] + B.S_noise[k, r, j]
+                Sm[r, j] = (intensity * s_road[r, j] + s_noise[r, j]
                             + var_f * B.S_force[k, r, j])
         d2 = _inv3_quad(Sm, nu) / N_READS
         for i in range(N_STATES):
             s = 0.0
             for r in range(N_READS):
-                s += B.K[k, i, r] * nu[r]
+                s += gain[i, r] * nu[r]
             x[k, i] += s
         if settled and tick > S.invalid_until and math.isfinite(d2):
             S.stat[k] += B.lam * (pymin(d2, P.fdi.clip_sq) - S.stat[k])
@@ -155,13 +166,14 @@ def filters(P, S, tick: int, z, held: int, volt: float, enabled: bool, intensity
 
 
 @njit
-def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot) -> int:
+def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot,
+           cur_held: bool = False) -> int:
     """The episode's decision this tick (the module's doc): ISOLATED_*, NOT_ISOLATED or
     ACTUATOR_* when one is reported now, else NONE. ``flat_failed``: the flatline tests'
     failed channels (bits in BLIND's order); ``act``: the actuator test's failure this tick
     (ACT_STUCK_BIT, ACT_OPEN_BIT); ``snapshot``: the freeze frame a detection now would take
     (kept for the decision's DTC: the state the fault appeared in, not the one it was named
-    in)."""
+    in); ``cur_held``: the current's reading is held or clipped this tick."""
     B = P.bank
     S.reported = False
     if S.episode < 0:
@@ -175,7 +187,7 @@ def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot
             return NONE
         if not (detected or flat_failed or act):
             return NONE
-        S.episode, S.cleared, S.alone_since, S.act = tick, 0, -1, 0
+        S.episode, S.cleared, S.alone_since, S.act, S.cur_held = tick, 0, -1, 0, False
         S.snapshot[:] = snapshot
         S.quiet_since = -1
     # the evidence ended: no test failing and no filter above its level for settle_ticks
@@ -185,6 +197,7 @@ def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot
         S.quiet_since = tick
     ended = S.quiet_since >= 0 and tick - S.quiet_since >= P.fdi.settle_ticks
     S.cleared |= S.above
+    S.cur_held = S.cur_held or cur_held
     if act and not S.act:
         S.act_since = tick
     S.act |= act
@@ -204,14 +217,24 @@ def decide(P, S, tick: int, detected: bool, flat_failed: int, act: int, snapshot
         S.decided = BY_TEST                 # (the flatline's own DTC names the channel)
     elif S.act:
         # the actuator test advances the back-EMF with BA - WA: a BA or WA fault the bank
-        # names was what it saw; else its conclusion stands once both are cleared or
-        # act_ticks have passed (a current sensor left alone cannot be told from the
-        # actuator: the filters that read the current see either)
+        # names was what it saw. The current left alone (its readers inconsistent, the
+        # current-blind filter not) is the current sensor or the actuator: not isolated.
+        # The current-blind filter inconsistent too (the corner's force was wrong, which no
+        # current sensor fault does): the actuator, once BA and WA are cleared. Else the
+        # test's conclusion stands after act_ticks where the bank saw nothing; what only
+        # some filters saw is not isolated, and so is anything the test concluded from a
+        # current reading held or clipped at its rail (the sensor's own range)
+        late = tick - S.act_since >= B.act_ticks or ended
         if alone == ISOLATED_BA or alone == ISOLATED_WA:
             S.decided = out = alone
-        elif (not (left & (SENSOR_BA | SENSOR_WA)) or tick - S.act_since >= B.act_ticks
-              or ended):
+        elif alone == ISOLATED_CUR:
+            S.decided = out = NOT_ISOLATED
+        elif not S.cur_held and (
+                (not (left & SENSOR_CUR) and not (left & (SENSOR_BA | SENSOR_WA)))
+                or (late and (S.cleared == 0 or not (left & SENSOR_CUR)))):
             S.decided = out = ACTUATOR_OPEN if S.act & ACT_OPEN_BIT else ACTUATOR_STUCK
+        elif late:
+            S.decided = out = NOT_ISOLATED
     elif left == 0:
         S.decided = out = NOT_ISOLATED
     elif alone >= 0:
@@ -253,7 +276,8 @@ def isolate(P, S, tick, ba, wa, defl, i_meas, force_meas, lifted, inputs_ok, fai
             flat |= 1 << j
     act = ((ACT_STUCK_BIT if (failed >> fdi.T_ACT_STUCK) & 1 else 0)
            | (ACT_OPEN_BIT if (failed >> fdi.T_ACT_OPEN) & 1 else 0))
-    out = decide(P, B, tick, (failed & fdi.NIS_TESTS) != 0, flat, act, snapshot)
+    out = decide(P, B, tick, (failed & fdi.NIS_TESTS) != 0, flat, act, snapshot,
+                 (held >> 3) & 1 != 0)
     if out != NONE:
         if out == NOT_ISOLATED:
             t = fdi.T_NOT_ISOLATED

@@ -7,7 +7,10 @@
   virtual sensor, the filter's one-step prediction of that channel (x' = Phi x + Gamma u, the
   model's output H x' + D u, u the known force of the last tick) quantised as its ADC would;
   the filter does not correct with it (its noise is ``akf.SKIP_SCALE`` times R-hat's; R-hat
-  adapts on the others), so the estimate is the Kalman filter of the measurements left.
+  adapts on the others), so the estimate is the Kalman filter of the measurements left. It
+  restarts from its power-up state at the entry: during the episode the faulty sensor moved
+  the estimate, and an offset it left in the road or position states (a bias, a drift) is
+  one no sensor left corrects: kept, it held a static force of 130-520 N in comfort.
   Everything downstream (the controllers' BA, the actuator's BA - WA, the grade's BA RMS,
   the tests) reads the virtual value, in both arithmetic paths; the C parity trace carries
   its counts. Without the motor current no mode is kept (its loop and the filter's force
@@ -42,7 +45,7 @@ import math
 
 import numpy as np
 
-from firmware import adc
+from firmware import adc, akf
 from firmware.akf import MEASURED
 from firmware.diag import bank, fdi
 from firmware.kernels import njit
@@ -189,7 +192,13 @@ def watch(P, S, force_meas: float, rho: float) -> None:
 
 @njit
 def enter(P, S, j: int, tick: int) -> None:
-    """Reconfigure for sensor ``j`` out: the tests restart on the reduced filter."""
+    """Reconfigure for sensor ``j`` out: the filter restarts from its power-up state on the
+    sensors left (the faulty sensor moved its estimate during the episode, and an offset it
+    left in the road or position states is one no sensor left corrects), the tests restart
+    on the reduced filter."""
+    akf.init(P.akf, S.akf)
+    S.fx.x[:] = 0                        # (the fixed-point path's: the parity trace's reset)
+    S.fx.reset = True
     D = S.degrade
     D.sensor, D.since, D.ok_since = j, tick, -1
     D.named[j] += 1

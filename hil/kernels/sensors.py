@@ -44,3 +44,42 @@ def to_counts(v, range_min, lsb, full):
     if raw >= full:
         return full
     return int(math.floor(raw + 0.5))
+
+
+# -- a persistent single-sensor fault (``hil.validate.sensorfaults``: the sensor campaign) --
+# one record: the channel (index into the five; -1: none), the kind, the tick of its onset,
+# its size (bias: the value added; drift: the value added per tick since the onset; gain: the
+# excess g - 1 of the true value's gain; noise: the noise's factor), the stuck count (held
+# from the onset's sample; -1 until then) and the count a dropout reads (the ADC's count of 0)
+FAULT = np.dtype([("channel", "i8"), ("kind", "i8"), ("onset", "i8"), ("size", "f8"),
+                  ("held", "i8"), ("zero", "i8")])
+FAULT_KINDS = ("none", "bias", "drift", "gain", "stuck", "noise", "dropout")
+K_BIAS, K_DRIFT, K_GAIN, K_STUCK, K_NOISE, K_DROPOUT = 1, 2, 3, 4, 5, 6
+DROPOUT_ON, DROPOUT_PERIOD = 5, 100      # a dropout reads 0 for 5 ticks of every 100
+
+
+@njit
+def quantise_faulted(values, z, std, gain, range_min, lsb, full, out, F, k) -> None:
+    """``quantise_into`` with the fault ``F[0]`` from its onset: a bias, drift or gain on the
+    sensor's true value, a noise ``size`` times its own (the same draws), before the ADC; a
+    stuck or dropped-out count after it."""
+    f = F[0]
+    c = f.channel
+    on = c >= 0 and k >= f.onset
+    if on:
+        if f.kind == K_BIAS:
+            values[c] += f.size
+        elif f.kind == K_DRIFT:
+            values[c] += f.size * (k - f.onset)
+        elif f.kind == K_GAIN:
+            values[c] *= 1.0 + f.size
+        elif f.kind == K_NOISE:
+            values[c] += (f.size - 1.0) * z[c] * std[c] * gain[c]
+    quantise_into(values, z, std, gain, range_min, lsb, full, out)
+    if on:
+        if f.kind == K_STUCK:
+            if f.held < 0:
+                F[0].held = out[c]
+            out[c] = F[0].held
+        elif f.kind == K_DROPOUT and (k - f.onset) % DROPOUT_PERIOD < DROPOUT_ON:
+            out[c] = f.zero

@@ -37,7 +37,7 @@ from hil.kernels.bus import (M_CMD, M_ENERGY, M_REC, M_REQ, M_SENSORS, M_SPEED,
                              U_FAULTS, U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ,
                              U_SPEED, U_ST_REASON, U_STORED, U_SUPPLY, U_TRUE_DTD,
                              U_TRUE_GRADE, U_TRUE_ROAD, U_TRUE_SWS)
-from hil.kernels.sensors import quantise_into, to_counts
+from hil.kernels.sensors import quantise_faulted, to_counts
 
 # the driver policies here: a script's decisions are Python's (the calendar's spans)
 POLICIES = ("auto", "fixed", "refuse", "script")
@@ -204,12 +204,13 @@ def _send(Z, mi) -> None:
 
 @njit
 def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, pp, v, acc, zf,
-        speed_mps, true_grade, segment, noise, sup_noise, std, rmin, lsb, full, P, T, S, I, O,
+        speed_mps, true_grade, segment, noise, sup_noise, std, rmin, lsb, full, SF, P, T, S, I, O,
         obs, rows, hashbuf, ff, ff_first, reqlog, fslog, log_id, log_dlc, log_data, s_bytes,
         fx_rows, k_end):
     """Run the lockstep ticks from ``Z.k`` up to ``k_end`` (or the route's end). ``Ea``, the
     ECU node's state with its receivers ``ERX`` and SecOC rows ``ESEC`` and its frame faults
-    ``ff``/``ff_first`` (``hil.kernels.ecunode``); ``PRX``, the plant's receiver of
+    ``ff``/``ff_first`` (``hil.kernels.ecunode``); ``SF``, a sensor fault
+    (``hil.kernels.sensors.FAULT``; channel -1: none); ``PRX``, the plant's receiver of
     ACTUATOR_CMD; ``SEC``, the plant's and the app's SecOC rows; ``s_bytes``, the ECU
     state ``S`` as bytes, whose fixed-point hand-over goes to ``fx_rows`` per tick
     (``Z.fx_on``, the C parity record). Returns ``OK`` or
@@ -234,7 +235,8 @@ def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, p
                 Z.gain[c] = Z.noise_gain
         ba, wa, sws, cur = kp.sensed(x, Z.zf, pp, Z.has_actuator != 0)
         sensed[0], sensed[1], sensed[2], sensed[3], sensed[4] = ba, wa, sws, cur, speed_mps[k]
-        quantise_into(sensed, noise[k - Z.noise_base], std, Z.gain, rmin, lsb, full, counts)
+        quantise_faulted(sensed, noise[k - Z.noise_base], std, Z.gain, rmin, lsb, full, counts,
+                         SF, k)
         if k % Z.p_speed == 0:
             m = M[M_SPEED]
             kf.seal(m, buf, kf.put(0, F[U_SPEED], counts[4]), Z.ctr[M_SPEED], True)

@@ -34,6 +34,7 @@ from firmware.layout import view
 from hil.kernels import bus as kb
 from hil.kernels import frames as kf
 from hil.kernels import secoc as ks
+from hil.kernels import sensors as ks_sensors
 from hil.kernels import silloop as kl
 from hil.nodes import ECU_TRACE, ID, REQ_KINDS, AppNode, EcuNode, PlantNode, run_in_process
 from hil.transport import secoc
@@ -70,6 +71,12 @@ def _between_ticks(plant: PlantNode, ecu_node: EcuNode) -> bool:
     """The nodes stand between two lockstep ticks (where the loop can take them over)."""
     return (not plant.cmd_fresh and not ecu_node.pending and ecu_node.held_cmd is None
             and not ecu_node.unrecorded and ecu_node.k == plant.k)
+
+
+def _no_fault() -> np.ndarray:
+    f = kf.table(ks_sensors.FAULT, 1)
+    f["channel"] = -1
+    return f
 
 
 def _sha(key: bytes) -> str:
@@ -185,6 +192,9 @@ class _Loop:
         self.fx_type = fx[0]
         self.noise = self.sup_noise = self.sup_state = None
         self.seen: Counter = Counter()
+        # the plant's sensor fault (its stuck count is written in place), else none
+        self.sensor_fault = plant.sensors.fault if plant.sensors.fault is not None \
+            else _no_fault()
 
     # -- the nodes' state in, and back -------------------------------------------------------
 
@@ -316,7 +326,7 @@ class _Loop:
                             e.SEC, self.sec, e.crypto, a._phis, a._flows, self.x, a._pp, a._v,
                             a._acc, plant.zf, self.speed, self.true_grade, self.segment,
                             self.noise, self.sup_noise, sens._std, sens._min, sens._lsb,
-                            sens._full, st.P, st.T, st.S, st.I, st.O, plant.obs, self.rows,
+                            sens._full, self.sensor_fault, st.P, st.T, st.S, st.I, st.O, plant.obs, self.rows,
                             self.hashbuf, e.ff, e.ff_first, self.reqlog, self.fslog,
                             self.log_id, self.log_dlc, self.log_data, self.s_bytes,
                             self.fx_rows, k1)

@@ -99,7 +99,7 @@ class PlantNode:
             self.inject.before_emit(self)
         if self.noise_step is not None and k * self.dt >= self.noise_step[0]:
             self.sensors.noise_gain[:] = self.noise_step[1]
-        r = self.sensors.sample(*a.sensed(), self.timeline.speed_mps.item(k))
+        r = self.sensors.sample(*a.sensed(), self.timeline.speed_mps.item(k), k)
         out = []
         if k % self.p_speed == 0:
             out.append(self.tx.frame("VEHICLE_SPEED", {"SPEED": r.speed}))

@@ -102,7 +102,8 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         duration_s: Optional[float] = None, fixed_point: bool = False,
         fx_record: Optional[list] = None, key: Optional[bytes] = None,
         hashed: Optional[bytearray] = None, compiled: bool = True,
-        leave_out: Optional[str] = None) -> tuple[dict, SilTrace]:
+        leave_out: Optional[str] = None, sensor_fault: Optional[tuple] = None,
+        ecu_out: Optional[list] = None) -> tuple[dict, SilTrace]:
     """Run the SIL. Returns (report dict, per-tick trace). ``on_frame(id, data)`` sees every
     frame in bus order; ``duration_s`` stops early; ``fixed_point`` runs the ECU's integer
     control path; ``fx_record`` (a list) receives its per-tick (inputs, outputs); ``key``: the
@@ -110,7 +111,10 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     tick's row of the trace hash (``hil.nodes.HASHED``), the per-tick golden traces;
     ``compiled``: the compiled lockstep loop (``hil.nodes.fastsil``) where it covers the run, else
     (and with False) the nodes of ``hil.nodes`` frame by frame: the same bytes; ``leave_out``:
-    the ECU starts with this sensor out (``firmware.ecu.Ecu.leave_out``)."""
+    the ECU starts with this sensor out (``firmware.ecu.Ecu.leave_out``); ``sensor_fault``:
+    (channel, kind, onset tick, size), a persistent fault of the plant's sensor
+    (``hil.sim.sensors.SensorSuite.set_fault``); ``ecu_out`` (a list) receives the ECU's
+    state as the run ends (its DTC memory: ``.diag.dtc``)."""
     check_route(cfg, route)
     p = ecu_params(cfg, mode, controller=controller, opts=opts, gains_file=gains_file,
                    params=params)
@@ -119,6 +123,8 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
     plant = PlantNode(cfg, route, seed, codec, noise_step=noise_step, key=key)
     if duration_s is not None:
         plant.n = min(plant.n, int(round(duration_s / plant.dt)))
+    if sensor_fault is not None:
+        plant.sensors.set_fault(*sensor_fault)
     ecu_node = EcuNode(p, codec, lockstep=True, fixed_point=fixed_point,
                        record=fx_record is not None, key=key)
     ecu_node.hashed = hashed
@@ -131,6 +137,8 @@ def run(cfg: VehicleConfig, route: Route, mode: str, seed: int, *,
         bus = run_in_process(plant, ecu_node, app, on_frame=on_frame, progress=progress)
     if fx_record is not None:
         fx_record.extend(ecu_node.state.log)
+    if ecu_out is not None:
+        ecu_out.append(ecu_node.state)
     trace = merge_traces(plant.dt, plant.trace(), ecu_node.trace())
     report = build_report(cfg, route, mode, controller, seed, trace, plant.summary(),
                           ecu_node.summary(), app.summary())

@@ -48,14 +48,19 @@ def cases(routes, vehicles, speeds, seeds, duration_s=None) -> list[Case]:
             for k in seeds]
 
 
-def _vehicle(name: str):
-    from hil.config import DEFAULT_VEHICLE_FILE, load_vehicle
+def vehicle_path(name: str) -> Path:
+    """A vehicle file by its path, or by the name of a shipped one (``suv.toml``)."""
+    from hil.config import DEFAULT_VEHICLE_FILE
 
     path = Path(name)
     shipped = DEFAULT_VEHICLE_FILE.parent / name
-    if not path.exists() and shipped.exists():
-        path = shipped
-    cfg = load_vehicle(path)
+    return shipped if not path.exists() and shipped.exists() else path
+
+
+def _vehicle(name: str):
+    from hil.config import load_vehicle
+
+    cfg = load_vehicle(vehicle_path(name))
     nl = dataclasses.replace(cfg.nonlinear, bump_stops=True, tire_lift_off=True)
     return dataclasses.replace(cfg, nonlinear=nl)
 
@@ -138,7 +143,7 @@ def summarise(results: list[dict]) -> dict:
     return doc
 
 
-def _seeds(text: str) -> list[int]:
+def seeds_arg(text: str) -> list[int]:
     try:
         if "-" in text:
             a, b = (int(x) for x in text.split("-", 1))
@@ -171,7 +176,7 @@ def add_parser(sub) -> None:
     p.add_argument("--speeds", type=_floats, default=list(DEFAULT_SPEEDS),
                    help="comma-separated speeds in m/s; every route is driven at each "
                         "(default: 10,20,30)")
-    p.add_argument("--seeds", type=_seeds, default=list(range(1, DEFAULT_SEEDS + 1)),
+    p.add_argument("--seeds", type=seeds_arg, default=list(range(1, DEFAULT_SEEDS + 1)),
                    help="N (seeds 1..N) or A-B (default: 10)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="drive only the first S seconds of each route")
