@@ -84,6 +84,16 @@ def _joint_noise(A_cl: np.ndarray, A_f: np.ndarray, n_f: int, dt: float, intensi
     return van_loan_integral(A.T, np.outer(g, g), dt) * intensity
 
 
+def catalogue():
+    """The faults, in the analysis's order: (sensor, kind, magnitude, its multiple of sigma;
+    "-" and 0 for the kinds without one)."""
+    for sensor in fb.SENSORS:
+        for kind in KINDS:
+            mags = MAGNITUDES if kind in ("bias", "drift", "gain") else {"-": 0.0}
+            for mag, mult in mags.items():
+                yield sensor, kind, mag, mult
+
+
 def fault_at(kind: str, size: float, t: int, dt: float, sigma: float) -> tuple:
     """The fault at tick ``t`` from its onset, f_t = k_t (c z_t) + f0_t (+ white noise of
     variance qn; ``held``: the value held from the onset): (k, f0, qn, held)."""
@@ -238,16 +248,16 @@ def _case(cond: str, A5, B5, K, q: float, band: float) -> tuple:
 
 def _filter_result(gen: fb.Generator, A_f, case: Case, sig: dict, sensor: str, kind: str,
                    size: float, ticks: int, sigma: float, opts: DesignOptions,
-                   exact: bool) -> dict:
+                   exact: bool, h: np.ndarray) -> dict:
     """One filter's response to one fault: when its test reliably crosses (the bank's; the
-    full filter's also per channel, the ECU's innovation tests) and where its EWMA ends."""
+    full filter's also per channel, the ECU's innovation tests) and where its EWMA ends;
+    ``h``: the filter's healthy statistic (``propagate`` of no fault: 1 at the filter's
+    design speed), where each EWMA starts."""
     from calib.fdi_design import chi2_level
 
     dt, alpha, clip = opts.dt_s, opts.fdi_false_alarm, opts.fdi_clip_sigmas ** 2
     lam, lam_bank = 2.0 / (opts.fdi_nis_window + 1), 2.0 / (opts.fdi_bank_window + 1)
     st = propagate(gen, A_f, case, sig, sensor, kind, size, ticks, dt, sigma, clip, exact)
-    # the healthy statistic (1 at the filter's design speed)
-    h = propagate(gen, A_f, case, sig, sensor, "bias", 0.0, 1, dt, sigma, clip, exact)[0]
     m = gen.H.shape[0]
     lvl = chi2_level(m * opts.fdi_bank_window, alpha)
     sure = lvl + RELIABLE_SD * scatter(lam_bank, m)
@@ -288,35 +298,36 @@ def analyse(cfg, opts: DesignOptions, grade: str, speed: float, progress=None) -
         X = case.X
         rms = {s: math.sqrt(float(sig[s] @ X @ sig[s])) for s in fb.SENSORS}
         conds[cond] = {"force_rms_n": f_rms, "signal_rms": rms}
-        for sensor in fb.SENSORS:
+        starts: dict = {}                    # the healthy statistic per filter
+        for sensor, kind, mag, mult in catalogue():
             sigma = fb.sensor_sigma(cfg, sensor)
-            for kind in KINDS:
-                mags = MAGNITUDES if kind in ("bias", "drift", "gain") else {"-": 0.0}
-                for mag, mult in mags.items():
-                    size = fault_size(kind, sigma, rms[sensor], mult)
-                    row = {"condition": cond, "sensor": sensor, "kind": kind, "magnitude": mag,
-                           "size": size, "filters": {}}
-                    rows.append(row)
-                    if size is None or (kind == "dropout" and rms[sensor] == 0.0):
-                        row["note"] = "no signal: not a fault here"
-                        continue
-                    ticks = int(round(HORIZON_S.get(kind, HORIZON_DEFAULT_S) / dt))
-                    for name, gen in banks[cond].items():
-                        b, d = gen.fault_input(sensor)
-                        if not (np.any(b) or np.any(d)):
-                            if sensor != name:
-                                raise AssertionError(f"filter {name} does not see {sensor}")
-                            row["filters"][name] = {"blind": True}
-                            continue
-                        if sensor == name:
-                            raise AssertionError(f"filter {name} sees the sensor it is blind to")
-                        A_f = A7 if gen.phi.shape[0] == 7 else A5
-                        r = _filter_result(gen, A_f, case, sig, sensor, kind, size, ticks,
-                                           sigma, opts, exact)
-                        row["filters"][name] = r
-                    _judge(row, opts, cfg, sensor, kind)
-                    if progress:
-                        progress(row)
+            size = fault_size(kind, sigma, rms[sensor], mult)
+            row = {"condition": cond, "sensor": sensor, "kind": kind, "magnitude": mag,
+                   "size": size, "filters": {}}
+            rows.append(row)
+            if size is None or (kind == "dropout" and rms[sensor] == 0.0):
+                row["note"] = "no signal: not a fault here"
+                continue
+            ticks = int(round(HORIZON_S.get(kind, HORIZON_DEFAULT_S) / dt))
+            for name, gen in banks[cond].items():
+                b, d = gen.fault_input(sensor)
+                if not (np.any(b) or np.any(d)):
+                    if sensor != name:
+                        raise AssertionError(f"filter {name} does not see {sensor}")
+                    row["filters"][name] = {"blind": True}
+                    continue
+                if sensor == name:
+                    raise AssertionError(f"filter {name} sees the sensor it is blind to")
+                A_f = A7 if gen.phi.shape[0] == 7 else A5
+                if name not in starts:
+                    starts[name] = propagate(gen, A_f, case, sig, sensor, "bias", 0.0, 1, dt,
+                                             sigma, opts.fdi_clip_sigmas ** 2, exact)[0]
+                row["filters"][name] = _filter_result(gen, A_f, case, sig, sensor, kind, size,
+                                                      ticks, sigma, opts, exact,
+                                                      starts[name])
+            _judge(row, opts, cfg, sensor, kind)
+            if progress:
+                progress(row)
     return {"grade": grade, "speed_mps": speed, "alpha": alpha, "window": opts.fdi_nis_window,
             "bank": {k[9:]: getattr(opts, k) for k in ("fdi_bank_structure",
                                                         "fdi_bank_offset_walk_v",

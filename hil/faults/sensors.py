@@ -122,6 +122,18 @@ def degraded_seen(ev: Evidence) -> str:
     return "out, bridge open" if not enable.any() else "out"
 
 
+def isolation_of(names, part: str) -> Optional[str]:
+    """What the confirmed DTCs ``names`` say of a fault of ``part``: "wrong" when any names a
+    healthy part, "right" when they name it, "not isolated" when none names a part and the
+    bank said so; None when none of them speaks to it."""
+    parts = {fw.DTCS[fw.BY_NAME[n]].part for n in names} & set(fw.PARTS)
+    if parts - {part}:
+        return "wrong"
+    if parts:
+        return "right"
+    return "not isolated" if "sensor_not_isolated" in names else None
+
+
 def judge_dtcs(r: Result, spec: Fault, first: int, w: Window, read: Optional[dict]) -> None:
     """A plausible fault's DTCs as the tester read them over UDS after its window: its
     model-based DTCs confirmed, each with a snapshot taken inside the window at the drive's
@@ -147,12 +159,6 @@ def judge_dtcs(r: Result, spec: Fault, first: int, w: Window, read: Optional[dic
         and d["snapshot"]["speed_mps"] is not None
         and abs(d["snapshot"]["speed_mps"] - CAMPAIGN_SPEED_MPS) <= SNAPSHOT_SPEED_TOL_MPS
         for d in own)
-    parts = {fw.DTCS[fw.BY_NAME[d["name"]]].part for d in got} & set(fw.PARTS)
-    if parts - {spec.part}:
-        r.isolation = "wrong"
-    elif parts:
-        r.isolation = "right"
-    elif any(d["name"] == "sensor_not_isolated" for d in got):
-        r.isolation = "not isolated"
+    r.isolation = isolation_of([d["name"] for d in got], spec.part)
     if spec.dtc:
         r.isolated = r.isolation == "right"

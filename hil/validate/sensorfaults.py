@@ -97,15 +97,10 @@ def vehicle(name: str):
 
 def route_of(spec: Optional[str]):
     """The route: a shipped name or file, else one segment of grade B at 20 m/s long enough."""
-    from hil.sim.road import Route, Segment, load_route
-    from calib.iso8608 import GRADE_GQ_M3
+    from hil.sim.road import constant_route, load_route
 
-    if spec:
-        return load_route(spec)
-    return Route("sensor-faults", (Segment(GRADE_GQ_M3[GRADE], SPEED_MPS * (ONSET_S + FOLLOW_S
-                                                                            + 1.0),
-                                           SPEED_MPS, GRADE),),
-                 description=f"sensor campaign: grade {GRADE} at {SPEED_MPS:g} m/s")
+    return load_route(spec) if spec else constant_route(GRADE, SPEED_MPS,
+                                                        ONSET_S + FOLLOW_S + 1.0)
 
 
 def onset_segment(route):
@@ -148,12 +143,9 @@ def cases(vehicles, route: Optional[str], seeds, only=None, progress=None) -> li
 
 def fault_names() -> list[str]:
     """Every fault's name (``--only``), without running the analysis."""
-    from calib import fdi_bank as fb
-    from calib.isolability import KINDS, MAGNITUDES
+    from calib.isolability import catalogue
 
-    return [f"{s}_{k}" + (f"_{m}" if k in ("bias", "drift", "gain") else "")
-            for s in fb.SENSORS for k in KINDS
-            for m in (MAGNITUDES if k in ("bias", "drift", "gain") else ("-",))]
+    return [f"{s}_{k}" + ("" if m == "-" else f"_{m}") for s, k, m, _ in catalogue()]
 
 
 def plant_fault(case: Case, dt: float) -> tuple:
@@ -179,12 +171,14 @@ def _fault_free(vehicle_name: str, route: Optional[str], seed: int):
 
 def ratios(a: dict, span: slice) -> Optional[list[float]]:
     """BA, SWS, DTD RMS over ``span`` against the passive twin's."""
+    from hil.sim.metrics import rms
+
     out = []
     for k in ("ba", "sws", "dtd"):
         x, p = np.asarray(a[k])[span], np.asarray(a["p_" + k])[span]
         if len(x) == 0 or not np.any(p):
             return None
-        out.append(round(float(np.sqrt(np.mean(x * x)) / np.sqrt(np.mean(p * p))), 4))
+        out.append(round(rms(x) / rms(p), 4))
     return out
 
 
@@ -194,6 +188,7 @@ def run_case(case: Case) -> dict:
     from firmware.diag import degrade as fd
     from firmware.diag import dtc
     from hil.apps.diag import dtc_label
+    from hil.faults.sensors import isolation_of
     from hil.nodes import sil
 
     t0 = time.perf_counter()
@@ -213,17 +208,10 @@ def run_case(case: Case) -> dict:
     detect = int(hit[0]) if len(hit) else None
     mem = got[0].diag.dtc
     confirmed = [(dtc.DTCS[i], int(mem.entries[i].first_tick)) for i in range(len(dtc.DTCS))
-                 if mem.entries[i].status & 0x08]
-    parts = {d.part for d, _ in confirmed} & set(dtc.PARTS)
+                 if mem.entries[i].status & dtc.CDTC]
     named = [t for d, t in confirmed if d.part == case.sensor]
-    if parts - {case.sensor}:
-        isolation = "wrong"
-    elif parts:
-        isolation = "right"
-    elif any(d.name == "sensor_not_isolated" for d, _ in confirmed):
-        isolation = "not isolated"
-    else:
-        isolation = "undecided" if detect is not None else "none"
+    isolation = isolation_of([d.name for d, _ in confirmed], case.sensor) or (
+        "undecided" if detect is not None else "none")
     deg = np.asarray(a["degraded"])
     out_at = np.flatnonzero(deg[onset:] != fd.STATE_NORMAL)
     span = slice(onset + int(out_at[0]), n) if len(out_at) else slice(n, n)
