@@ -37,7 +37,7 @@ from hil.kernels.bus import (M_CMD, M_ENERGY, M_REC, M_REQ, M_SENSORS, M_SPEED,
                              U_FAULTS, U_REC_REASON, U_REGEN, U_SEGMENT, U_SENS, U_SEQ,
                              U_SPEED, U_ST_REASON, U_STORED, U_SUPPLY, U_TRUE_DTD,
                              U_TRUE_GRADE, U_TRUE_ROAD, U_TRUE_SWS)
-from hil.kernels.sensors import quantise_faulted, to_counts
+from hil.kernels.sensors import quantise_faulted, quantise_into, to_counts
 
 # the driver policies here: a script's decisions are Python's (the calendar's spans)
 POLICIES = ("auto", "fixed", "refuse", "script")
@@ -226,6 +226,7 @@ def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, p
     zeta = np.zeros(kp.N_AUG)           # the plant step's scratch
     flow_q = np.zeros(flows.shape[2])
     counts = np.zeros(5, np.int64)
+    faulted = SF[0].channel >= 0       # (a sensor fault: the campaign's; else the plain ADC)
     end = min(k_end, Z.n)
     while Z.k < end:
         k = Z.k
@@ -235,8 +236,11 @@ def run(Za, Ea, M, F, FAULT_BITS, ERX, PRX, ESEC, SEC, crypto, phis, flows, x, p
                 Z.gain[c] = Z.noise_gain
         ba, wa, sws, cur = kp.sensed(x, Z.zf, pp, Z.has_actuator != 0)
         sensed[0], sensed[1], sensed[2], sensed[3], sensed[4] = ba, wa, sws, cur, speed_mps[k]
-        quantise_faulted(sensed, noise[k - Z.noise_base], std, Z.gain, rmin, lsb, full, counts,
-                         SF, k)
+        if faulted:
+            quantise_faulted(sensed, noise[k - Z.noise_base], std, Z.gain, rmin, lsb, full,
+                             counts, SF, k)
+        else:
+            quantise_into(sensed, noise[k - Z.noise_base], std, Z.gain, rmin, lsb, full, counts)
         if k % Z.p_speed == 0:
             m = M[M_SPEED]
             kf.seal(m, buf, kf.put(0, F[U_SPEED], counts[4]), Z.ctr[M_SPEED], True)
