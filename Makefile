@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 SIM_ARGS := --route full_road_section --mode auto --seed 1
 
 .PHONY: setup run test test-fast lint jit bench tables tables-check clean \
-        vcan-setup vcan-run vcan-shell vcan-test
+        vcan-setup vcan-run vcan-shell vcan-test pil-setup pil
 
 setup: $(STAMP)
 
@@ -86,3 +86,23 @@ vcan-test: $(STAMP) vcan-setup jit
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
+
+# Processor in the loop (tools/pil.py; docs/pil.md): the C core cross-compiled for a Cortex-M4F
+# and a Cortex-M7, run under QEMU on the recorded traces: bit-exact, its instructions per tick,
+# flash, RAM and stack against the M4F budget and tests/golden/pil.json. pil-setup installs
+# the Debian packages (as root).
+PIL_PKGS := gcc-arm-none-eabi picolibc-arm-none-eabi qemu-system-arm
+
+pil-setup:
+	@if command -v arm-none-eabi-gcc >/dev/null && command -v qemu-system-arm >/dev/null && \
+	  [ -f /usr/lib/picolibc/arm-none-eabi/picolibc.specs ]; then \
+	  echo "pil-setup: the ARM toolchain, picolibc and QEMU are installed"; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  apt-get install -y --no-install-recommends $(PIL_PKGS) >/dev/null || \
+	  { apt-get update -qq && apt-get install -y --no-install-recommends $(PIL_PKGS); }; \
+	else \
+	  echo "pil-setup: as root, type: apt-get install -y $(PIL_PKGS)"; exit 2; \
+	fi
+
+pil: $(STAMP) pil-setup
+	$(PY) -m tools.pil

@@ -42,6 +42,12 @@ def test_bench_tool_writes_every_key_of_the_contract(tmp_path):
     rt = data["realtime_with_tester"]
     assert data["realtime_with_tester_missed_deadline_ratio"] == rt["missed_deadline_ratio"]
     assert rt["tester"]["requests"] > 10, rt["tester"]
+    # the PIL figures: each target's largest tick is the largest of its traces' (make pil)
+    if "skipped" not in data["pil"]:
+        for name in ("m4f", "m7"):
+            traces = data["pil"][name]["traces"].values()
+            assert data[f"pil_{name}_tick_instructions_max"] == max(
+                t["instructions"]["all"]["max"] for t in traces) > 1000
     # each goal's verdict is its comparison
     for key, goal in data["goals"].items():
         op, limit = goal["goal"].split()

@@ -3,7 +3,6 @@ byte-identically; the C fixed-point control path (c/ecu_fx.c) gives the same int
 compiled one (firmware/fx/path.py) on every tick of a recorded trace; cantools' generated C packs
 our frames to the same bytes as the Python encoder."""
 
-import dataclasses
 import random
 import re
 import subprocess
@@ -22,11 +21,11 @@ from hil.config import default_vehicle
 from hil.nodes import sil
 from hil.sim.road import load_route
 from hil.transport.codec import Codec, raw_range
-from tools.c_build import C_DIR, GEN, REPLAY_SOURCES, compile_c
+from tools.c_build import (C_DIR, GEN, PARITY_S, REPLAY_SOURCES, bump_stop_trace, compile_c,
+                           full_road_trace)
 from tools.c_build import replay_input as trace_text
 
 ROOT = Path(__file__).resolve().parents[1]
-TRACE_S = 80.0   # full_road_section: A, B, C and the start of D (every controller)
 
 
 # ---------------------------------------------------------------- tables
@@ -95,10 +94,8 @@ def replay_exe(tmp_path_factory):
 
 @pytest.mark.slow
 def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(replay_exe):
-    rec = []
-    rep, _ = sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
-                     fixed_point=True, fx_record=rec, duration_s=TRACE_S)
-    assert len(rec) == int(TRACE_S * 1000)
+    rec, rep = full_road_trace(PARITY_S)
+    assert len(rec) == int(PARITY_S * 1000)
     assert rep["ecu_arithmetic"] == "fixed" and rep["fx_gain_saturations"] == 0
     # the trace covers every controller of the route and the crossfades between them
     wants = {i.want for i, _ in rec}
@@ -136,20 +133,9 @@ def test_c_fixed_point_path_is_bit_exact_with_bump_stops_and_lift_off(tmp_path):
     """Off the linear model: the bump stops' force (a known input from the measured stroke,
     ``bump_force`` in firmware/fx/path.py and c/ecu_fx.c) on a vehicle that has them, driven
     hard enough to hit them, with the vehicle's own tables compiled in."""
-    cfg = default_vehicle()
-    cfg = dataclasses.replace(cfg, nonlinear=dataclasses.replace(
-        cfg.nonlinear, bump_stops=True, tire_lift_off=True), source="bump-stops")
-    gen = tmp_path / "gen"
-    gen.mkdir()
-    for name, text in tables.generate(cfg).items():
-        (gen / name).write_text(text)
+    cfg, gen, rec = bump_stop_trace(tmp_path)
     exe = compile_c(tmp_path / "replay", [C_DIR / "ecu_fx.c", C_DIR / "trace_replay.c",
                                           gen / "ecu_tables.c"], gen=gen)
-    route = tmp_path / "d30.toml"
-    route.write_text('name = "d30"\n[[segment]]\ngrade = "D"\nlength_m = 450.0\n'
-                     "speed_mps = 30.0\n")
-    rec = []
-    sil.run(cfg, load_route(route), "safety", 1, fixed_point=True, fx_record=rec)
     params = sil.ecu_params(cfg, "safety")
     assert params.akf.bump_stiffness > 0
     T = build_tables(params)
@@ -162,6 +148,30 @@ def test_c_fixed_point_path_is_bit_exact_with_bump_stops_and_lift_off(tmp_path):
     for k, (text, (_, out)) in enumerate(zip(res.stdout.splitlines(), rec, strict=True)):
         assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
     assert T.bump_k.m != 0
+
+
+SANITIZE = ("-fsanitize=undefined,address", "-fno-sanitize-recover=all", "-g")
+
+
+@pytest.mark.slow
+def test_c_path_is_clean_under_ubsan_and_asan(tmp_path):
+    """The host build with UndefinedBehaviorSanitizer and AddressSanitizer (every report
+    fatal: a shift out of range, a signed overflow, an out-of-bounds table read) replays the
+    80 s of every controller and the crossfades, still bit-exact; the bench path and a
+    malformed trace run clean too."""
+    exe = compile_c(tmp_path / "replay_san", REPLAY_SOURCES, *SANITIZE)
+    rec, _ = full_road_trace(PARITY_S)
+    text = trace_text(rec)
+    res = subprocess.run([str(exe)], input=text, capture_output=True, text=True)
+    assert res.returncode == 0 and not res.stderr, res.stderr[-2000:]
+    lines = res.stdout.splitlines()
+    assert len(lines) == len(rec)
+    for k, (line, (_, out)) in enumerate(zip(lines, rec)):
+        assert tuple(int(v) for v in line.split()) == out, f"tick {k}: C {line} != Python {out}"
+    res = subprocess.run([str(exe), "--bench", "2"], input=text, capture_output=True, text=True)
+    assert res.returncode == 0 and not res.stderr, res.stderr[-2000:]
+    res = subprocess.run([str(exe)], input="1 2 3\n", capture_output=True, text=True)
+    assert res.returncode == 2 and "malformed" in res.stderr and "Sanitizer" not in res.stderr
 
 
 def test_c_replay_rejects_a_malformed_trace(replay_exe):

@@ -11,7 +11,11 @@ ISO-TP and dispatch, answer included),
 ``sil_rtf`` (simulated s per wall s of ``hil sim`` on the default route) and ``sil_tick_us``
 (wall time per tick of that run), ``c_core_tick_us`` (the C fixed-point core, ``fx_tick`` of
 ``c/ecu_fx.c`` built with ``-O2``, timed alone over a recorded trace in the same run) and
-``sil_tick_over_c_core`` (their ratio), ``sil_stage_us`` (where a SIL tick's time goes, by
+``sil_tick_over_c_core`` (their ratio), ``pil_m4f_tick_instructions_max`` and
+``pil_m7_tick_instructions_max`` (the same core's largest tick on a Cortex-M4F and a Cortex-M7
+under QEMU, in instructions: exact counts, the same on every machine; every figure of
+``tools.pil`` under ``pil``; ``pil.skipped`` says why without the ARM toolchain),
+``sil_stage_us`` (where a SIL tick's time goes, by
 stage: a profile's shares scaled to the unprofiled tick), ``hil_sim_2s_wall_s`` (a whole
 ``python -m hil sim --duration 2`` process, start-up included, median of three after a
 warm-up run), ``hil_lockstep_rtf``
@@ -48,6 +52,7 @@ DEFAULT_OUT = ROOT / "out" / "bench.json"
 # 2 s start-up)
 GOALS = {"ecu_step_us_p99": ("<=", 200.0), "sil_rtf": (">=", 100.0),
          "sil_tick_over_c_core": ("<=", 25.0), "ecu_tick_us_p99": ("<=", 20.0),
+         "pil_m4f_tick_instructions_max": ("<=", 11200),
          "hil_sim_2s_wall_s": ("<=", 2.0),
          "hil_lockstep_rtf": (">=", 1.5), "realtime_missed_deadline_ratio": ("<", 0.001),
          "realtime_with_tester_missed_deadline_ratio": ("<", 0.001),
@@ -298,6 +303,8 @@ def run(quick: bool, progress=print) -> dict:
         out.update(c_core_tick_us(2.0 if quick else C_TRACE_S, 3 if quick else C_REPEATS,
                                   Path(tmp)))
     out["sil_tick_over_c_core"] = out["sil_tick_us"] / out["c_core_tick_us"]
+    progress("the C core on a Cortex-M4F and a Cortex-M7 under QEMU (make pil) ...")
+    out.update(pil_instructions())
     progress("a SIL tick by stage (profiled) ...")
     out["sil_stage_us"] = sil_stage_us(2.0 if quick else 10.0)
     progress("python -m hil sim --duration 2, whole processes ...")
@@ -319,7 +326,26 @@ def run(quick: bool, progress=print) -> dict:
     out["ga_tune_s"] = ga_tune_s()
     out["goals"] = {k: {"goal": f"{op} {v:g}", "met": (out[k] <= v if op == "<=" else
                                                       out[k] >= v if op == ">=" else out[k] < v)}
-                    for k, (op, v) in GOALS.items()}
+                    for k, (op, v) in GOALS.items() if k in out}
+    return out
+
+
+def pil_instructions() -> dict:
+    """The C core's instructions per tick on the PIL targets (``tools.pil``: exact counts from
+    QEMU's virtual clock, over the full road section's 80 s and the bump-stop drive): the
+    largest per target, and the whole figures under ``pil``; skipped, saying why, without
+    the ARM toolchain and QEMU."""
+    from tools import pil, pil_build
+
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            rep = pil.measure(list(pil_build.TARGETS.values()), Path(tmp))
+    except pil_build.PilError as exc:
+        return {"pil": {"skipped": str(exc).splitlines()[0]}}
+    out = {"pil": pil.pinned_view(rep)}
+    for name, e in rep["targets"].items():
+        out[f"pil_{name}_tick_instructions_max"] = max(
+            v["instructions"]["all"]["max"] for v in e["traces"].values())
     return out
 
 
@@ -344,10 +370,13 @@ def main(argv: list[str] | None = None) -> int:
         for k in ("ecu_step_us_p50", "ecu_step_us_p99", "ecu_step_fixed_us_p50",
                   "ecu_step_fixed_us_p99", "ecu_tick_us_p99", "ecu_tick_with_tester_us_p99",
                   "secoc_sign_us", "secoc_verify_us", "sil_rtf", "sil_tick_us",
-                  "c_core_tick_us", "sil_tick_over_c_core", "hil_sim_2s_wall_s",
+                  "c_core_tick_us", "sil_tick_over_c_core", "pil_m4f_tick_instructions_max",
+                  "pil_m7_tick_instructions_max", "hil_sim_2s_wall_s",
                   "hil_lockstep_rtf",
                   "realtime_missed_deadline_ratio",
                   "realtime_with_tester_missed_deadline_ratio", "ga_tune_s"):
+            if k not in r:      # (the PIL figures without the ARM toolchain)
+                continue
             g = r["goals"].get(k)
             table.add_row(k, f"{r[k]:.4g}", g["goal"] if g else "", ("yes" if g["met"] else "NO") if g else "")
         Console().print(table)

@@ -45,3 +45,51 @@ def replay_input(rec) -> str:
         return " ".join(map(str, [*counts, *i.k_q, *i.r_q, i.want, int(i.passive),
                                   int(i.fault), int(i.regen), int(i.reset)]))
     return "\n".join(line(i) for i, _ in rec) + "\n"
+
+
+PARITY_S = 80.0   # the full road section's first 80 s: A, B, C and the start of D (every controller)
+
+
+def full_road_trace(seconds: float = PARITY_S) -> list:
+    """The parity trace of the full road section (auto mode, seed 1, fixed point): the
+    record of ``hil.nodes.sil.run(fx_record=...)`` and the run's report."""
+    from hil.config import default_vehicle
+    from hil.nodes import sil
+    from hil.sim.road import load_route
+
+    rec = []
+    report, _ = sil.run(default_vehicle(), load_route("full_road_section"), "auto", 1,
+                        fixed_point=True, fx_record=rec, duration_s=seconds)
+    return rec, report
+
+
+def bump_stop_vehicle():
+    """The default car with its bump stops and tyre lift-off modelled (``bump_stop_trace``)."""
+    import dataclasses
+
+    from hil.config import default_vehicle
+
+    cfg = default_vehicle()
+    return dataclasses.replace(cfg, nonlinear=dataclasses.replace(
+        cfg.nonlinear, bump_stops=True, tire_lift_off=True), source="bump-stops")
+
+
+def bump_stop_trace(work: Path) -> tuple:
+    """Off the linear model: 450 m of a grade-D road at 30 m/s in safety mode on
+    ``bump_stop_vehicle()``, hard enough to hit the bump stops. Returns (the vehicle, its
+    tables' directory in ``work``, the record)."""
+    from calib import c_tables
+    from hil.nodes import sil
+    from hil.sim.road import load_route
+
+    cfg = bump_stop_vehicle()
+    gen = work / "gen"
+    gen.mkdir(parents=True, exist_ok=True)
+    for name, text in c_tables.generate(cfg).items():
+        (gen / name).write_text(text)
+    route = work / "d30.toml"
+    route.write_text('name = "d30"\n[[segment]]\ngrade = "D"\nlength_m = 450.0\n'
+                     "speed_mps = 30.0\n")
+    rec = []
+    sil.run(cfg, load_route(route), "safety", 1, fixed_point=True, fx_record=rec)
+    return cfg, gen, rec

@@ -1,0 +1,94 @@
+"""Processor in the loop (tools/pil.py, make pil): the C core on a Cortex-M4F and a Cortex-M7
+under QEMU, bit-exact with the Python fixed path on the parity traces, its figures pinned in
+tests/golden/pil.json; and the parts the verdict rests on (the clock's conversion, the stack
+bound over the call graph, the checks)."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tools import pil
+from tools import pil_build as pb
+
+HAVE_TOOLS = all(shutil.which(t) for t in ("arm-none-eabi-gcc", "qemu-system-arm"))
+needs_tools = pytest.mark.skipif(not HAVE_TOOLS, reason="make pil-setup installs the ARM "
+                                 "toolchain and QEMU (.ci/run does)")
+
+
+@needs_tools
+@pytest.mark.slow
+def test_both_targets_are_bit_exact_on_both_traces_and_the_figures_are_the_pinned_ones(
+        tmp_path):
+    rc = pil.main(["--out", str(tmp_path), "--json"])
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert set(rep["targets"]) == {"m4f", "m7"}
+    for name, e in rep["targets"].items():
+        assert set(e["traces"]) == {"full_road_80s", "bump_stops"}
+        for tr, v in e["traces"].items():
+            assert v["bit_exact"], (name, tr, v["difference"])
+        full = e["traces"]["full_road_80s"]["instructions"]
+        # every controller of the route ran, and the crossfades between them
+        assert set(full) >= {"all", "bppid", "lqr", "galqr", "regen", "crossfade"}, full
+        assert full["all"]["ticks"] == 80_000
+        assert sum(s["ticks"] for k, s in full.items() if k != "all") == 80_000
+        # the observed stack is within the call graph's bound
+        assert 0 < e["traces"]["full_road_80s"]["stack_used_bytes"] <= e["stack_worst"]["bytes"]
+    assert rep["failures"] == [] and rc == 0, rep["failures"]
+
+
+def test_systick_counts_convert_to_whole_instructions():
+    # at 128 ns an instruction and 40 ns a count, n instructions take floor or ceil 3.2 n counts
+    n = np.arange(1, 5000)
+    for phase in (0, 17, 39):
+        counts = (phase + 128 * n) // 40 - phase // 40
+        assert (pil.tick_instructions(counts) == n).all()
+    with pytest.raises(pb.PilError, match="not whole instructions"):
+        pil.tick_instructions(np.array([8]))      # 8 counts = 2.5 instructions: impossible
+
+
+def _ci(tmp_path, name, nodes, edges):
+    lines = [f'node: {{ title: "{t}" label: "{t}\\nx.c:1:1\\n{b} bytes ({k})" }}'
+             for t, b, k in nodes]
+    lines += [f'edge: {{ sourcename: "{a}" targetname: "{b}" }}' for a, b in edges]
+    (tmp_path / name).write_text("graph: {\n" + "\n".join(lines) + "\n}\n")
+
+
+def test_the_worst_stack_is_the_deepest_path_and_says_what_it_cannot_bound(tmp_path):
+    _ci(tmp_path, "ecu_fx.ci", [("fx_tick", 24, "static"), ("a", 100, "static"),
+                                ("b", 40, "static"), ("c", 80, "bounded")],
+        [("fx_tick", "a"), ("fx_tick", "b"), ("b", "c"), ("a", "memset")])
+    _ci(tmp_path, "ecu_tables.ci", [], [])
+    got = pb.worst_stack(tmp_path)
+    assert got["bytes"] == 24 + 40 + 80 and got["path"] == ["fx_tick", "b", "c"]
+    assert got["outside_the_graph"] == ["memset"] and got["not_static"] == ["c"]
+    _ci(tmp_path, "ecu_fx.ci", [("fx_tick", 24, "static"), ("a", 8, "static")],
+        [("fx_tick", "a"), ("a", "fx_tick")])
+    with pytest.raises(pb.PilError, match="recursion"):
+        pb.worst_stack(tmp_path)
+
+
+def _report(max_ins=5000, stack=300, exact=True):
+    tr = {"bit_exact": exact, "difference": None if exact else "tick 3: ...",
+          "instructions": {"all": {"ticks": 10, "p50": 1, "p99": 2, "max": max_ins}},
+          "stack_used_bytes": 100}
+    return {"targets": {"m4f": {"sizes": {"flash": 30000}, "ram_bytes": 600,
+                                "stack_worst": {"bytes": stack}, "traces": {"t": tr}}}}
+
+
+def test_the_checks_fail_on_a_difference_a_broken_budget_and_a_moved_figure():
+    ok = _report()
+    assert pil.checks(ok, pil.pinned_view(ok)) == []
+    assert any("not bit-exact" in f for f in pil.checks(_report(exact=False), None))
+    assert any("tick_instructions 11201" in f for f in pil.checks(_report(11201), None))
+    assert any("stack_bytes 2049" in f for f in pil.checks(_report(stack=2049), None))
+    moved = pil.checks(_report(5001), pil.pinned_view(ok))
+    assert len(moved) == 1 and "differ from pil.json" in moved[0]
+
+
+def test_an_unknown_target_is_one_clear_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        pil.main(["--targets", "m0"])
+    assert exc.value.code == 2
+    assert "unknown m0" in capsys.readouterr().err
