@@ -22,7 +22,7 @@ from hil.nodes import sil
 from hil.sim.road import load_route
 from hil.transport.codec import Codec, raw_range
 from tools.c_build import (C_DIR, GEN, PARITY_S, REPLAY_SOURCES, bump_stop_trace, compile_c,
-                           full_road_trace)
+                           full_road_trace, sensor_fault_trace)
 from tools.c_build import replay_input as trace_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,10 +115,7 @@ def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(re
 def test_c_is_bit_exact_through_a_sensor_left_out(replay_exe):
     """A deflection sensor biased 3 mm from 2 s on: named, left out, the filter and the
     controllers restarted (the hand-over's reset) and driven on in comfort; C follows."""
-    rec = []
-    cfg = default_vehicle()
-    sil.run(cfg, load_route("full_road_section"), "comfort", 2, fixed_point=True,
-            fx_record=rec, duration_s=6.0, sensor_fault=("susp_defl", "bias", 2000, 0.003))
+    rec = sensor_fault_trace()
     resets = [k for k, (tin, _) in enumerate(rec) if tin.reset]
     assert len(resets) == 1 and 2000 < resets[0] < 3000, resets
     res = subprocess.run([str(replay_exe)], input=trace_text(rec), capture_output=True, text=True)

@@ -11,6 +11,7 @@ import pytest
 
 from tools import pil
 from tools import pil_build as pb
+from tools import pil_mix
 
 HAVE_TOOLS = all(shutil.which(t) for t in ("arm-none-eabi-gcc", "qemu-system-arm"))
 needs_tools = pytest.mark.skipif(not HAVE_TOOLS, reason="make pil-setup installs the ARM "
@@ -19,13 +20,13 @@ needs_tools = pytest.mark.skipif(not HAVE_TOOLS, reason="make pil-setup installs
 
 @needs_tools
 @pytest.mark.slow
-def test_both_targets_are_bit_exact_on_both_traces_and_the_figures_are_the_pinned_ones(
+def test_both_targets_are_bit_exact_on_every_trace_and_the_figures_are_the_pinned_ones(
         tmp_path):
     rc = pil.main(["--out", str(tmp_path), "--json"])
     rep = json.loads((tmp_path / "report.json").read_text())
     assert set(rep["targets"]) == {"m4f", "m7"}
     for name, e in rep["targets"].items():
-        assert set(e["traces"]) == {"full_road_80s", "bump_stops"}
+        assert set(e["traces"]) == {"full_road_80s", "bump_stops", "sensor_out"}
         for tr, v in e["traces"].items():
             assert v["bit_exact"], (name, tr, v["difference"])
         full = e["traces"]["full_road_80s"]["instructions"]
@@ -35,6 +36,13 @@ def test_both_targets_are_bit_exact_on_both_traces_and_the_figures_are_the_pinne
         assert sum(s["ticks"] for k, s in full.items() if k != "all") == 80_000
         # the observed stack is within the call graph's bound
         assert 0 < e["traces"]["full_road_80s"]["stack_used_bytes"] <= e["stack_worst"]["bytes"]
+    # the mix was read off the executed code, and the host's coverage of the same traces
+    cyc = rep["m4f_cycles"]
+    assert cyc["instructions"] > 100_000 and 1.0 < cyc["cpi"] <= pil.ASSUMED_CPI, cyc
+    assert abs(sum(cyc["mix"].values()) - 1.0) < 1e-9
+    cov = rep["coverage"]
+    assert cov["branch_edges"] > 100 and 0 < cov["branch_edges_taken"] < cov["branch_edges"]
+    assert cov["lines_run"] + len(cov["lines_never_run"]) == cov["lines"]
     assert rep["failures"] == [] and rc == 0, rep["failures"]
 
 
@@ -46,6 +54,25 @@ def test_systick_counts_convert_to_whole_instructions():
         assert (pil.tick_instructions(counts) == n).all()
     with pytest.raises(pb.PilError, match="not whole instructions"):
         pil.tick_instructions(np.array([8]))      # 8 counts = 2.5 instructions: impossible
+
+
+def test_the_mix_costs_each_instruction_and_a_taken_branch_its_refill(tmp_path):
+    log = tmp_path / "q.log"
+    log.write_text("----------------\nIN: f\n"
+                   "0x00000100:  b538       push     {r3, r4, r5, lr}\n"
+                   "0x00000102:  6830       ldr      r0, [r6]\n"
+                   "0x00000104:  d001       beq      #0x10a\n\n"
+                   "----------------\nIN: f\n"
+                   "0x0000010a:  fb81 2300  smull    r2, r3, r1, r0\n"
+                   "0x0000010e:  bd38       pop      {r3, r4, r5, pc}\n\n"
+                   "Trace 0: 0x1 [00000000/00000100/00000010/ff020200] f\n"
+                   "Trace 0: 0x1 [00000000/0000010a/00000010/ff020200] f\n"
+                   "Trace 0: 0x1 [00000000/00000100/00000010/ff020200] f\n"
+                   "Trace 0: 0x1 [00000000/00000106/00000010/ff020200] f\n")
+    mix, cycles = pil_mix.parse(log)
+    assert mix == {"load/store multiple": 3, "load/store": 2, "branch": 2, "multiply": 1}
+    # push 5 + ldr 2 + beq 1, taken (+3); smull 1 + pop 5, returning (+3); again, not taken
+    assert cycles == (5 + 2 + 1 + 3) + (1 + 5 + 3) + (5 + 2 + 1)
 
 
 def _ci(tmp_path, name, nodes, edges):

@@ -28,7 +28,8 @@ import numpy as np
 from firmware.params import CTRL_NAMES
 from hil.cli import add_json_argument, emit, fail
 from tools import pil_build as pb
-from tools.c_build import GEN, bump_stop_trace, full_road_trace
+from tools import pil_cover, pil_mix
+from tools.c_build import GEN, bump_stop_trace, full_road_trace, sensor_fault_trace
 
 ROOT = Path(__file__).resolve().parents[1]
 PINNED = ROOT / "tests" / "golden" / "pil.json"
@@ -37,7 +38,9 @@ TRAILER = 6
 # the M4F's budget (issue 42; docs/pil.md justifies the CPI behind the instructions)
 BUDGET = {"tick_instructions": 11_200, "stack_bytes": 2048, "flash_bytes": 65536,
           "ram_bytes": 16384}
+ASSUMED_CPI = 1.5   # 11,200 instructions = 10 % of 1 ms at 168 MHz / 1.5
 RUN_TIMEOUT_S = 900
+MIX_WINDOW = 300    # ticks from the middle of each controller's stretch, for the mix
 
 
 def trace_array(rec) -> np.ndarray:
@@ -111,11 +114,23 @@ def first_difference(rec, got: np.ndarray):
     return None
 
 
+def mix_windows(trace: np.ndarray) -> np.ndarray:
+    """MIX_WINDOW ticks from the middle of each controller's stretch of the trace, one after
+    the other (the mix of every controller in proportion, not the route's)."""
+    want = trace[:, -5]          # (want, passive, fault, regen, reset: the last five)
+    rows = []
+    for c in sorted(set(want.tolist())):
+        ks = np.nonzero(want == c)[0]
+        rows.extend(ks[len(ks) // 2:len(ks) // 2 + MIX_WINDOW])
+    return trace[rows]
+
+
 def traces(work: Path, say) -> dict:
     say("recording the traces (hil sim, fixed point) ...")
     full, _ = full_road_trace()
     _, gen, bump = bump_stop_trace(work / "bump")
-    return {"full_road_80s": (GEN, full), "bump_stops": (gen, bump)}
+    return {"full_road_80s": (GEN, full), "bump_stops": (gen, bump),
+            "sensor_out": (GEN, sensor_fault_trace())}
 
 
 def measure(targets, work: Path, say=lambda s: None) -> dict:
@@ -137,7 +152,15 @@ def measure(targets, work: Path, say=lambda s: None) -> dict:
 
     with ThreadPoolExecutor(2) as pool:
         done = list(pool.map(one, jobs))
-    report = {"targets": {}}
+    say("the branches the traces take (host, gcov) ...")
+    report = {"targets": {}, "coverage": pil_cover.coverage(recorded.values(), work / "cov")}
+    m4 = [j for j in jobs if j[0].name == "m4f" and j[1] == "full_road_80s"]
+    if m4:
+        t, _, rec, elf, d = m4[0]
+        say("m4f: the executed instruction mix (QEMU's block log) ...")
+        report["m4f_cycles"] = pil_mix.measure(
+            t, elf, mix_windows(trace_array(rec)), d / "mix",
+            pil_mix.code_range(elf, "__ecu_code_start", "__ecu_code_end"))
     for (t, name, rec, elf, d), r in done:
         entry = report["targets"].setdefault(t.name, {"what": t.what, "machine": t.machine,
                                                       "traces": {}})
@@ -181,6 +204,10 @@ def checks(report: dict, pinned) -> list:
                          ("flash_bytes", m4["sizes"]["flash"]), ("ram_bytes", m4["ram_bytes"])):
             if got > BUDGET[key]:
                 bad.append(f"m4f: {key} {got} over the budget of {BUDGET[key]}")
+    cyc = report.get("m4f_cycles")
+    if cyc and cyc["cpi"] > ASSUMED_CPI:
+        bad.append(f"m4f: the executed mix costs {cyc['cpi']:.2f} cycles an instruction, over "
+                   f"the {ASSUMED_CPI} the instruction budget assumes")
     if pinned is not None:
         now = pinned_view(report)
         for name in now:
@@ -201,6 +228,15 @@ def render(r: dict) -> None:
             for cls, s in v["instructions"].items():
                 print(f"    {cls:10} {s['ticks']:6} ticks  p50 {s['p50']:6}  p99 {s['p99']:6}"
                       f"  max {s['max']:6}")
+    cov = r["coverage"]
+    print(f"c/ecu_fx.c on the traces: {cov['lines_run']} of {cov['lines']} lines, "
+          f"{cov['branch_edges_taken']} of {cov['branch_edges']} branch edges; never run: "
+          + " | ".join(f"{n}: {t}" for n, t in cov["lines_never_run"].items()))
+    cyc = r.get("m4f_cycles")
+    if cyc:
+        mix = ", ".join(f"{k} {100 * v:.1f} %" for k, v in cyc["mix"].items())
+        print(f"m4f: {cyc['cpi']:.2f} cycles an instruction over {cyc['instructions']} executed "
+              f"instructions (Cortex-M4 timings, pessimistic, zero wait states; {mix})")
     for line in r["failures"]:
         print(f"FAIL {line}")
     print(f"pil: {'PASS' if not r['failures'] else 'FAIL'}")
