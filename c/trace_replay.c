@@ -3,6 +3,12 @@
  * fault regen reset. stdout, one line per tick: duty force x[5] resid[FX_N_MEAS] integ voltage.
  * Exit 2 on a malformed line.
  *
+ * `trace_replay --cov`: the same with the covariance side of the filter in C (akf_cov.c;
+ * built with -DAKF_FLOAT, in float32). stdin, one tick per line: counts[4] q_road flags want
+ * passive fault regen (q_road a C99 hex float, flags the AKF_COV_* bits). stdout: the line
+ * above, then k[5*FX_N_MEAS] r[FX_N_MEAS] (the Q numbers handed to fx_correct) and the float
+ * gain K[5*FX_N_MEAS] row-major as hex floats (%a, widened to double).
+ *
  * `trace_replay --bench R` (make bench's c_core_tick_us): reads the whole trace first, then
  * runs fx_init and fx_tick over it R times, each run timed alone (CLOCK_MONOTONIC); prints
  * "ticks N best_ns_per_tick B median_ns_per_tick M checksum C", the checksum folding every
@@ -13,6 +19,7 @@
 #include <string.h>
 #include <time.h>
 
+#include "akf_cov.h"
 #include "ecu_fx.h"
 
 static int read_int(long *v)
@@ -45,19 +52,79 @@ static int read_tick(fx_in_t *in)
     return ok ? 1 : -1;
 }
 
+static void print_outputs(const fx_state_t *s)
+{
+    int i;
+    printf("%d %ld", (int)s->duty, (long)s->force);
+    for (i = 0; i < 5; i++) printf(" %ld", (long)s->x[i]);
+    for (i = 0; i < FX_N_MEAS; i++) printf(" %ld", (long)s->resid[i]);
+    printf(" %ld %ld", (long)s->integ, (long)s->voltage);
+}
+
 static int replay(void)
 {
     fx_state_t s;
     fx_in_t in;
     long ticks = 0;
-    int i, r;
+    int r;
     fx_init(&s);
     while ((r = read_tick(&in)) == 1) {
         fx_tick(&s, &in);
-        printf("%d %ld", (int)s.duty, (long)s.force);
-        for (i = 0; i < 5; i++) printf(" %ld", (long)s.x[i]);
-        for (i = 0; i < FX_N_MEAS; i++) printf(" %ld", (long)s.resid[i]);
-        printf(" %ld %ld\n", (long)s.integ, (long)s.voltage);
+        print_outputs(&s);
+        printf("\n");
+        ticks++;
+    }
+    if (r < 0) {
+        fprintf(stderr, "trace_replay: malformed tick %ld\n", ticks);
+        return 2;
+    }
+    return 0;
+}
+
+/* One --cov tick's line into *in: 1 read, 0 end of input, -1 malformed. */
+static int read_cov_tick(akf_in_t *in)
+{
+    long v;
+    double q;
+    int i, ok = 1;
+    if (!read_int(&v)) {
+        return 0;
+    }
+    in->counts[0] = (int32_t)v;
+    for (i = 1; i < 4 && ok; i++) ok = read_int(&v), in->counts[i] = (int32_t)v;
+    ok = ok && scanf("%lf", &q) == 1;
+    in->q_road = (akf_real)q;
+    ok = ok && read_int(&v);
+    in->flags = (int)v;
+    ok = ok && read_int(&v);
+    in->want = (int)v;
+    ok = ok && read_int(&v);
+    in->passive = (int)v;
+    ok = ok && read_int(&v);
+    in->fault = (int)v;
+    ok = ok && read_int(&v);
+    in->regen = (int)v;
+    return ok ? 1 : -1;
+}
+
+static int replay_cov(void)
+{
+    static akf_cov_t a;           /* (zeroed: the saturation count starts at 0) */
+    fx_state_t s;
+    akf_in_t in;
+    long ticks = 0;
+    int i, r;
+    fx_init(&s);
+    akf_cov_init(&a);
+    while ((r = read_cov_tick(&in)) == 1) {
+        fx_tick_cov(&s, &a, &in);
+        print_outputs(&s);
+        for (i = 0; i < 5 * FX_N_MEAS; i++) printf(" %ld", (long)a.k_q[i]);
+        for (i = 0; i < FX_N_MEAS; i++) printf(" %ld", (long)a.r_q[i]);
+        for (i = 0; i < 5 * FX_N_MEAS; i++) {
+            printf(" %a", (double)a.K[i / FX_N_MEAS][i % FX_N_MEAS]);
+        }
+        printf("\n");
         ticks++;
     }
     if (r < 0) {
@@ -142,6 +209,9 @@ int main(int argc, char **argv)
     if (argc == 1) {
         return replay();
     }
+    if (argc == 2 && strcmp(argv[1], "--cov") == 0) {
+        return replay_cov();
+    }
     if (argc == 3 && strcmp(argv[1], "--bench") == 0) {
         char *end;
         long repeats = strtol(argv[2], &end, 10);
@@ -149,6 +219,6 @@ int main(int argc, char **argv)
             return bench(repeats);
         }
     }
-    fprintf(stderr, "usage: trace_replay [--bench REPEATS] < trace\n");
+    fprintf(stderr, "usage: trace_replay [--cov | --bench REPEATS] < trace\n");
     return 2;
 }

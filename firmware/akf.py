@@ -24,7 +24,7 @@ Compiled (numba) over the state record's ``akf`` fields: ``estimate`` is the flo
 stage 2 (the force from the measured current, the forces off the model, ``tick``); ``tick``
 predicts and corrects in one call. The arithmetic is ``firmware.kernels.akf``'s, in
 filterpy's split (``predict_ws``, then ``update_ws`` exposing the innovation; ``gain_ws`` the
-update's float half, which the fixed-point path calls, ``firmware.ecu._estimate_fixed``).
+update's float half, which the fixed-point path calls, ``firmware.fx.estimate``).
 """
 
 from __future__ import annotations
@@ -40,6 +40,12 @@ from firmware import adc
 SKIP_SCALE = 1e12   # a measurement not used: its noise variance this many times R_hat's
 
 MEASURED = (adc.BA, adc.DEFL, adc.WA)     # the filter's z, in its order
+
+# The covariance side's inputs from the rest of the ECU in one word (the fixed-point path
+# records it for the C estimator, ``c/akf_cov.h``: the same bits): the measurements held
+# (bits 0-2, z order), R-hat may adapt, and the forces off the model this tick (``off_model``);
+# the supervisor restarted the filter (``firmware.diag.degrade.enter``).
+COV_ADAPT, COV_LIFTED, COV_CURRENT_UNKNOWN, COV_STROKE_UNKNOWN, COV_RESTART = 8, 16, 32, 64, 128
 
 
 def state_dtype(m: int) -> np.dtype:
@@ -107,7 +113,9 @@ def unknown_forces(A, S, lifted: bool, current_unknown: bool, stroke_unknown: bo
 
 @njit
 def off_model(P, S, ba: float, wa: float):
-    """The covariance side of a tick off the linear model (the module's doc): returns (R-hat may adapt, the bits of the measurements held: z indices)."""
+    """The covariance side of a tick off the linear model (the module's doc): returns (R-hat
+    may adapt, the bits of the measurements held: z indices, the ``COV_`` bits of the forces
+    off the model)."""
     current_known = adc.measured(S.adc, adc.CUR)
     stroke_known = adc.measured(S.adc, adc.DEFL)
     lifted = airborne(P.akf, P.plant.ms, P.plant.mt, ba, wa) and P.akf.lift_force_sigma_n > 0
@@ -119,7 +127,9 @@ def off_model(P, S, ba: float, wa: float):
     held |= out_z(S)
     adapt = (current_known and stroke_known and not lifted
              and adc.measured(S.adc, adc.BA) and adc.measured(S.adc, adc.WA))
-    return adapt, held
+    unknown = ((COV_LIFTED if lifted else 0) | (0 if current_known else COV_CURRENT_UNKNOWN)
+               | (0 if stroke_known else COV_STROKE_UNKNOWN))
+    return adapt, held, unknown
 
 
 @njit
@@ -169,7 +179,7 @@ def estimate(P, S, ba: float, wa: float, defl: float, i_meas: float,
     g = pl.efficiency if i_meas * rel_prev >= 0.0 else 1.0 / pl.efficiency
     force_meas = g * pl.force_constant * i_meas
     known = force_meas + bump_force(P.akf, defl)
-    adapt, held = off_model(P, S, ba, wa)
+    adapt, held, _ = off_model(P, S, ba, wa)
     finite = tick(P.akf, S.akf, 0.5 * (S.ctl.force_known_prev + known), road_intensity, ba,
                   defl, wa, known, adapt, held)
     S.ctl.force_known_prev = known

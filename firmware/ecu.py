@@ -26,12 +26,12 @@ from firmware import actuator, adc, akf, control, grade, modes, safety
 from firmware.diag import bank, degrade, dtc, fdi
 from firmware.diag.fdi import SUPPLY_TESTS
 from firmware.diag.view import DiagView
-from firmware.fixedpoint import to_fixed, to_float
+from firmware.fixedpoint import to_float
+from firmware.fx import estimate as fx_estimate
 from firmware.fx import path as fx
 from firmware.fx.state import TickIn
-from firmware.fx.tables import F_FORCE, MEAS_FRAC, STATE_FRAC
+from firmware.fx.tables import F_FORCE
 from firmware.kernels import INTERPRETED, njit
-from firmware.kernels import akf as akf_kern
 from firmware.layout import INPUTS, OUTPUTS, params_record, record, view
 from firmware.modes import EVT_INVALID_REQUEST, EVT_REQUEST_RATE
 from firmware.params import MODE_ENERGY, MODE_PASSIVE, EcuParams
@@ -160,7 +160,7 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
     if Ta is None:
         force_meas, finite = akf.estimate(P, S, ba, wa, defl, i_meas, road_intensity)
     else:
-        force_meas, finite = _estimate_fixed(P, Ta[0], S, ba, wa, road_intensity)
+        force_meas, finite = fx_estimate.estimate(P, Ta[0], S, ba, wa, road_intensity)
     if not finite:
         faults |= safety.FAULT_NONFINITE_ESTIMATE
         akf.init(P.akf, S.akf)
@@ -261,44 +261,6 @@ def _control(P, S, mode, fault, regen, ba, wa, i_meas, force_meas):
     duty = actuator.step(P.actuator, pl, S.ctl.actuator, i_ref, i_meas, rel, regen,
                                  P.control.regen_min_voltage_ratio, rel_acc, P.dt_s)
     return duty, True, force
-
-
-@njit
-def _estimate_fixed(P, T, S, ba, wa, road_intensity):
-    """Stage 2 of the fixed-point path (``firmware.fx``): the integer
-    prediction and correction of x around the float covariance and gain. Returns
-    (force_meas, finite)."""
-    A, F, K = P.akf, S.fx, S.akf
-    m = K.R.shape[0]
-    for c in range(4):           # the last good counts (-1: none yet)
-        F.counts[c] = S.adc.counts[c]
-    F.reset = False
-    fx.measure(T, F, F.counts)
-    adapt, held = akf.off_model(P, S, ba, wa)
-    akf_kern.predict_ws(A.phi, A.gamma, A.q_unit, K.x, K.P, 0.0, road_intensity, False, K.ws)
-    for j in range(m):
-        r = K.r[j]
-        F.r_q[j] = to_fixed(r, MEAS_FRAC[j]) if math.isfinite(r) else 0
-        S.resid_f[j] = to_float(F.resid[j], MEAS_FRAC[j])
-    skip = held & ((1 << m) - 1)
-    if skip:
-        K.R_saved[:, :] = K.R
-        for j in range(m):
-            if (skip >> j) & 1:
-                K.R[j, j] *= akf.SKIP_SCALE
-    K.b_pow, hit = akf_kern.gain_ws(
-        A.H, K.P, K.R, K.r, S.resid_f, A.r_floor, A.r_scale, K.b_pow, A.forgetting,
-        bool(A.adaptive) and adapt and not skip, bool(A.bias_adaptive), K.ws)
-    if skip:
-        K.R[:, :] = K.R_saved
-    K.hph[:] = K.ws.hph
-    K.innovation[:] = K.ws.eps
-    K.guard_hits += hit
-    fx.quantize_gain(T, F, K.ws.K)
-    fx.correct(T, F)
-    for i in range(5):
-        K.x[i] = to_float(F.x[i], STATE_FRAC[i])
-    return to_float(F.force_meas, F_FORCE), akf_kern.all_finite(K.x, K.P)
 
 
 @njit
@@ -495,6 +457,7 @@ def fx_entry(f) -> tuple:
     counts = tuple(None if c < 0 else int(c) for c in f["counts"])
     tin = TickIn(counts, tuple(int(v) for v in f["k_q"]), tuple(int(v) for v in f["r_q"]),
                  int(f["want"]), bool(f["passive"]), bool(f["fault"]), bool(f["regen"]),
-                 bool(f["reset"]))
+                 bool(f["reset"]), float(f["q_road"]), int(f["cov_flags"]),
+                 tuple(float(v) for v in f["k_f"]))
     return tin, (int(f["duty"]), int(f["force"]), *(int(v) for v in f["x"]),
                  *(int(v) for v in f["resid"]), int(f["integ"]), int(f["voltage"]))

@@ -16,13 +16,16 @@ from calib import c_tables as tables
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
 from firmware import params as fp
+from firmware.akf import (COV_ADAPT, COV_CURRENT_UNKNOWN, COV_LIFTED, COV_RESTART,
+                          COV_STROKE_UNKNOWN)
 from firmware.fx.tables import Fx
 from hil.config import default_vehicle
 from hil.nodes import sil
 from hil.sim.road import load_route
 from hil.transport.codec import Codec, raw_range
 from tools.c_build import (C_DIR, GEN, PARITY_S, REPLAY_SOURCES, bump_stop_trace, compile_c,
-                           full_road_trace, sensor_fault_trace)
+                           full_road_trace, replay_sources, sensor_fault_trace)
+from tools.c_build import parse_cov_output, replay_cov_input
 from tools.c_build import replay_input as trace_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,6 +95,21 @@ def replay_exe(tmp_path_factory):
     return compile_c(d / "trace_replay", REPLAY_SOURCES)
 
 
+def assert_estimator_bit_exact(exe, rec):
+    """``trace_replay --cov``: the covariance side of the filter in C (c/akf_cov.c, double)
+    from the counts, q_road and the flags alone gives the Python path's float gain bit for
+    bit, its Q gain and every output on every tick."""
+    res = subprocess.run([str(exe), "--cov"], input=replay_cov_input(rec), capture_output=True,
+                         text=True)
+    assert res.returncode == 0 and not res.stderr, res.stderr[-2000:]
+    outs, kq, rq, kf = parse_cov_output(res.stdout)
+    assert len(outs) == len(rec)
+    for k, (tin, out) in enumerate(rec):
+        assert kf[k] == tin.k_f, f"tick {k}: C gain {kf[k]} != Python {tin.k_f}"
+        assert kq[k] == tin.k_q and rq[k] == tin.r_q, f"tick {k}: the Q gain or bias differ"
+        assert outs[k] == out, f"tick {k}: C {outs[k]} != Python {out}"
+
+
 @pytest.mark.slow
 def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(replay_exe):
     rec, rep = full_road_trace(PARITY_S)
@@ -110,6 +128,10 @@ def test_c_fixed_point_path_is_bit_exact_with_python_on_the_full_road_section(re
         assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
     duties = {out[0] for _, out in rec}
     assert len(duties) > 1000   # the duty moves: the comparison is not of constants
+    # the whole estimator in C: R-hat adapts on the route, the guard and the gain move
+    assert sum(1 for i, _ in rec if i.cov_flags & COV_ADAPT) > 0.9 * len(rec)
+    assert len({i.k_f for i, _ in rec}) > 0.9 * len(rec)
+    assert_estimator_bit_exact(replay_exe, rec)
 
 
 def test_c_is_bit_exact_through_a_sensor_left_out(replay_exe):
@@ -123,6 +145,10 @@ def test_c_is_bit_exact_through_a_sensor_left_out(replay_exe):
     for k, (text, (_, out)) in enumerate(zip(res.stdout.splitlines(), rec)):
         assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
     assert len({out[0] for _, out in rec[resets[0]:]}) > 100   # (driven on after it)
+    # the estimator in C: the held measurement, the restart and the reduced filter after it
+    assert rec[resets[0]][0].cov_flags & COV_RESTART
+    assert any(i.cov_flags & 0b111 for i, _ in rec[resets[0] + 1:])
+    assert_estimator_bit_exact(replay_exe, rec)
 
 
 @pytest.mark.slow
@@ -131,8 +157,7 @@ def test_c_fixed_point_path_is_bit_exact_with_bump_stops_and_lift_off(tmp_path):
     ``bump_force`` in firmware/fx/path.py and c/ecu_fx.c) on a vehicle that has them, driven
     hard enough to hit them, with the vehicle's own tables compiled in."""
     cfg, gen, rec = bump_stop_trace(tmp_path)
-    exe = compile_c(tmp_path / "replay", [C_DIR / "ecu_fx.c", C_DIR / "trace_replay.c",
-                                          gen / "ecu_tables.c"], gen=gen)
+    exe = compile_c(tmp_path / "replay", replay_sources(gen), gen=gen)
     params = sil.ecu_params(cfg, "safety")
     assert params.akf.bump_stiffness > 0
     T = build_tables(params)
@@ -145,6 +170,10 @@ def test_c_fixed_point_path_is_bit_exact_with_bump_stops_and_lift_off(tmp_path):
     for k, (text, (_, out)) in enumerate(zip(res.stdout.splitlines(), rec, strict=True)):
         assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
     assert T.bump_k.m != 0
+    # off the model: the stroke and the current beyond their sensors add process noise
+    assert any(i.cov_flags & (COV_LIFTED | COV_CURRENT_UNKNOWN | COV_STROKE_UNKNOWN)
+               for i, _ in rec)
+    assert_estimator_bit_exact(exe, rec)
 
 
 SANITIZE = ("-fsanitize=undefined,address", "-fno-sanitize-recover=all", "-g")
@@ -167,6 +196,12 @@ def test_c_path_is_clean_under_ubsan_and_asan(tmp_path):
         assert tuple(int(v) for v in line.split()) == out, f"tick {k}: C {line} != Python {out}"
     res = subprocess.run([str(exe), "--bench", "2"], input=text, capture_output=True, text=True)
     assert res.returncode == 0 and not res.stderr, res.stderr[-2000:]
+    assert_estimator_bit_exact(exe, rec)
+    exe32 = compile_c(tmp_path / "replay_san32", REPLAY_SOURCES, *SANITIZE, "-DAKF_FLOAT")
+    res = subprocess.run([str(exe32), "--cov"], input=replay_cov_input(rec),
+                         capture_output=True, text=True)
+    assert res.returncode == 0 and not res.stderr, res.stderr[-2000:]
+    assert len(res.stdout.splitlines()) == len(rec)
     res = subprocess.run([str(exe)], input="1 2 3\n", capture_output=True, text=True)
     assert res.returncode == 2 and "malformed" in res.stderr and "Sanitizer" not in res.stderr
 
@@ -175,6 +210,8 @@ def test_c_replay_rejects_a_malformed_trace(replay_exe):
     res = subprocess.run([str(replay_exe)], input="1 2 3\n", capture_output=True, text=True)
     assert res.returncode == 2 and "malformed" in res.stderr
     for args, text in ((["--bench", "3"], "1 2 3\n"), (["--bench", "3"], ""),
+                       (["--cov"], "1 2 3 4 0x1p-3 8 0\n"), (["--cov"], "1 2 3 4 x 8 0 0 0 0\n"),
+                       (["--cov", "1"], ""),
                        (["--bench", "0"], "1\n"), (["--bench"], "1\n"), (["-x", "1"], "")):
         res = subprocess.run([str(replay_exe), *args], input=text, capture_output=True,
                              text=True)

@@ -25,6 +25,7 @@ def test_both_targets_are_bit_exact_on_every_trace_and_the_figures_are_the_pinne
     rc = pil.main(["--out", str(tmp_path), "--json"])
     rep = json.loads((tmp_path / "report.json").read_text())
     assert set(rep["targets"]) == {"m4f", "m7"}
+    len_of = {"full_road_80s": 80_000, "bump_stops": 15_000, "sensor_out": 6_000}
     for name, e in rep["targets"].items():
         assert set(e["traces"]) == {"full_road_80s", "bump_stops", "sensor_out"}
         for tr, v in e["traces"].items():
@@ -36,6 +37,26 @@ def test_both_targets_are_bit_exact_on_every_trace_and_the_figures_are_the_pinne
         assert sum(s["ticks"] for k, s in full.items() if k != "all") == 80_000
         # the observed stack is within the call graph's bound
         assert 0 < e["traces"]["full_road_80s"]["stack_used_bytes"] <= e["stack_worst"]["bytes"]
+    # the whole estimator in C (c/akf_cov.c): double on the M7 bit-exact with Python, float32
+    # on the M4F bit-exact with the host's float32 build, no software double in it, its
+    # deviation from double measured on every trace and its cost against the budget reported
+    est = rep["estimator"]
+    assert est["m7"]["traces"].keys() == est["m4f"]["traces"].keys() == e["traces"].keys()
+    for name, e in est.items():
+        for tr, v in e["traces"].items():
+            assert v["bit_exact"], (name, tr, v["difference"])
+            assert v["instructions"]["all"]["ticks"] == len_of[tr]
+            # the estimator costs more than the integer path alone, on every tick class
+            assert (v["instructions"]["all"]["p50"]
+                    > rep["targets"][name]["traces"][tr]["instructions"]["all"]["p50"])
+    assert est["m7"]["traces"]["full_road_80s"]["build"] == "double"
+    for tr, v in est["m4f"]["traces"].items():
+        assert v["build"] == "float32" and v["soft_double_calls"] == []
+        dev = v["float32_vs_double"]
+        assert dev["ticks"] == len_of[tr] and 0 < dev["duty_counts"]["ticks_differ"] <= len_of[tr]
+    worst = max(v["instructions"]["all"]["max"] for v in est["m4f"]["traces"].values())
+    assert est["m4f"]["over_budget"]["tick_instructions"] == max(
+        0, worst - pil.BUDGET["tick_instructions"])
     # the mix was read off the executed code, and the host's coverage of the same traces
     cyc = rep["m4f_cycles"]
     assert cyc["instructions"] > 100_000 and 1.0 < cyc["cpi"] <= pil.ASSUMED_CPI, cyc

@@ -13,7 +13,8 @@ ISO-TP and dispatch, answer included),
 ``c/ecu_fx.c`` built with ``-O2``, timed alone over a recorded trace in the same run) and
 ``sil_tick_over_c_core`` (their ratio), ``pil_m4f_tick_instructions_max`` and
 ``pil_m7_tick_instructions_max`` (the same core's largest tick on a Cortex-M4F and a Cortex-M7
-under QEMU, in instructions: exact counts, the same on every machine; every figure of
+under QEMU, in instructions: exact counts, the same on every machine; ``_estimator_`` the
+tick with the AKF's covariance side in C, float32 on the M4F, double on the M7; every figure of
 ``tools.pil`` under ``pil``; ``pil.skipped`` says why without the ARM toolchain),
 ``sil_stage_us`` (where a SIL tick's time goes, by
 stage: a profile's shares scaled to the unprofiled tick), ``hil_sim_2s_wall_s`` (a whole
@@ -346,6 +347,9 @@ def pil_instructions() -> dict:
     for name, e in rep["targets"].items():
         out[f"pil_{name}_tick_instructions_max"] = max(
             v["instructions"]["all"]["max"] for v in e["traces"].values())
+    for name, e in rep.get("estimator", {}).items():   # the tick with c/akf_cov.c in it
+        out[f"pil_{name}_estimator_tick_instructions_max"] = max(
+            v["instructions"]["all"]["max"] for v in e["traces"].values())
     return out
 
 
@@ -371,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
                   "ecu_step_fixed_us_p99", "ecu_tick_us_p99", "ecu_tick_with_tester_us_p99",
                   "secoc_sign_us", "secoc_verify_us", "sil_rtf", "sil_tick_us",
                   "c_core_tick_us", "sil_tick_over_c_core", "pil_m4f_tick_instructions_max",
-                  "pil_m7_tick_instructions_max", "hil_sim_2s_wall_s",
+                  "pil_m7_tick_instructions_max", "pil_m4f_estimator_tick_instructions_max",
+                  "pil_m7_estimator_tick_instructions_max", "hil_sim_2s_wall_s",
                   "hil_lockstep_rtf",
                   "realtime_missed_deadline_ratio",
                   "realtime_with_tester_missed_deadline_ratio", "ga_tune_s"):

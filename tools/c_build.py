@@ -11,8 +11,19 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 C_DIR = ROOT / "c"
 GEN = C_DIR / "generated"
-CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")
-REPLAY_SOURCES = (C_DIR / "ecu_fx.c", C_DIR / "trace_replay.c", GEN / "ecu_tables.c")
+# -ffp-contract=off: no fused multiply-add, so that the double estimator (c/akf_cov.c) rounds
+# every product as Python does
+CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", "-ffp-contract=off")
+
+
+def replay_sources(gen: Path = GEN) -> tuple:
+    """``trace_replay``'s sources with the tables of ``gen``."""
+    return (C_DIR / "ecu_fx.c", C_DIR / "akf_cov.c", C_DIR / "trace_replay.c",
+            gen / "ecu_tables.c")
+
+
+REPLAY_SOURCES = replay_sources()
+LIBS = ("-lm",)
 
 
 class CBuildError(RuntimeError):
@@ -30,7 +41,7 @@ def compile_c(out: Path, sources, *extra, gen: Path = GEN) -> Path:
     """Compile ``sources`` to ``out`` against the tables header in ``gen``; a warning or an
     error raises CBuildError with the command and gcc's output."""
     cmd = [gcc(), *CFLAGS, f"-I{gen}", f"-I{C_DIR}", *extra, *map(str, sources), "-o",
-           str(out)]
+           str(out), *(() if "-c" in extra else LIBS)]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0 or res.stderr:
         raise CBuildError(f"{' '.join(cmd)}\n{res.stderr}")
@@ -45,6 +56,30 @@ def replay_input(rec) -> str:
         return " ".join(map(str, [*counts, *i.k_q, *i.r_q, i.want, int(i.passive),
                                   int(i.fault), int(i.regen), int(i.reset)]))
     return "\n".join(line(i) for i, _ in rec) + "\n"
+
+
+def replay_cov_input(rec) -> str:
+    """The same record as ``trace_replay --cov``'s stdin: the counts, the covariance side's
+    inputs (q_road bit for bit, as a hex float; its flags) and the mode's."""
+    def line(i):
+        counts = [-1 if v is None else v for v in i.counts]
+        return " ".join(map(str, [*counts, float(i.q_road).hex(), i.cov_flags, i.want,
+                                  int(i.passive), int(i.fault), int(i.regen)]))
+    return "\n".join(line(i) for i, _ in rec) + "\n"
+
+
+def parse_cov_output(text: str, m: int = 3) -> tuple:
+    """``trace_replay --cov``'s lines as (outputs: the tuples ``replay_input``'s replay
+    gives, k_q, r_q, K: the float gain's exact values)."""
+    n_out = 2 + 5 + m + 2
+    outs, kq, rq, kf = [], [], [], []
+    for line in text.splitlines():
+        f = line.split()
+        outs.append(tuple(int(v) for v in f[:n_out]))
+        kq.append(tuple(int(v) for v in f[n_out:n_out + 5 * m]))
+        rq.append(tuple(int(v) for v in f[n_out + 5 * m:n_out + 6 * m]))
+        kf.append(tuple(float.fromhex(v) for v in f[n_out + 6 * m:]))
+    return outs, kq, rq, kf
 
 
 PARITY_S = 80.0   # the full road section's first 80 s: A, B, C and the start of D (every controller)

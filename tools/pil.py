@@ -8,7 +8,11 @@ the bump-stop drive, with its vehicle's tables) it builds the image, runs it on
 ``qemu-system-arm`` and requires the same integers as the Python fixed path on every tick;
 then it reports the instructions per tick (exact, from the virtual clock: p50, p99, max, per
 controller and in the crossfades), the stack fx_tick used, and the ECU's flash, RAM and
-worst-case stack; checks them against the M4F budgets, and against the figures pinned in
+worst-case stack. Each runs again with the whole estimator in C (``tools.pil_cov``: double
+on the M7, bit-exact with Python; float32 on the M4F, bit-exact with the host's float32 build,
+its deviation from double measured; its cost over the M4F budget is reported, not failed:
+the covariance side is the background task's). It checks the integer path against the M4F
+budgets, and every figure against those pinned in
 ``tests/golden/pil.json`` (``--update`` rewrites them: a change says why in its commit).
 Writes DIR/report.json (default out/pil). Exit 0 when all holds, 1 when a check fails,
 2 when the toolchain is missing or a run breaks.
@@ -28,7 +32,7 @@ import numpy as np
 from firmware.params import CTRL_NAMES
 from hil.cli import add_json_argument, emit, fail
 from tools import pil_build as pb
-from tools import pil_cover, pil_mix
+from tools import pil_cov, pil_cover, pil_mix
 from tools.c_build import GEN, bump_stop_trace, full_road_trace, sensor_fault_trace
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -150,8 +154,17 @@ def measure(targets, work: Path, say=lambda s: None) -> dict:
         say(f"{t.name} {name}: {len(rec)} ticks done")
         return job, r
 
+    cov_jobs = pil_cov.build_all(targets, recorded, work, say)
+
+    def one_cov(job):
+        t, name, gen, rec, elf, d = job
+        r = run_image(t, elf, pil_cov.cov_array(rec, t.name == "m7"), d / "run")
+        say(f"{t.name} {name} with the estimator: {len(rec)} ticks done")
+        return job, r
+
     with ThreadPoolExecutor(2) as pool:
         done = list(pool.map(one, jobs))
+        cov_done = list(pool.map(one_cov, cov_jobs))
     say("the branches the traces take (host, gcov) ...")
     report = {"targets": {}, "coverage": pil_cover.coverage(recorded.values(), work / "cov")}
     m4 = [j for j in jobs if j[0].name == "m4f" and j[1] == "full_road_80s"]
@@ -173,6 +186,23 @@ def measure(targets, work: Path, say=lambda s: None) -> dict:
             entry["state_bytes"], entry["in_bytes"] = r["state_bytes"], r["in_bytes"]
             entry["ram_bytes"] = (entry["sizes"]["static_ram"] + r["state_bytes"]
                                   + r["in_bytes"])
+    est = report["estimator"] = {}
+    for job, r in cov_done:
+        t, name, gen, rec, elf, d = job
+        entry = est.setdefault(t.name, {"what": t.what, "traces": {}})
+        v = entry["traces"][name] = pil_cov.assess(job, r, work / "cov-host" / t.name)
+        v["instructions"] = cost(r)
+        if name == "full_road_80s":
+            entry["sizes"] = pb.sizes(d / "build", pb.COV_SOURCES)
+            entry["stack_worst"] = pb.worst_stack(d / "build", "fx_tick_cov", pb.COV_SOURCES)
+            entry["ram_bytes"] = entry["sizes"]["static_ram"] + r["state_bytes"] + r["in_bytes"]
+    if "m4f" in est:
+        worst = max(v["instructions"]["all"]["max"] for v in est["m4f"]["traces"].values())
+        est["m4f"]["over_budget"] = {
+            "tick_instructions": max(0, worst - BUDGET["tick_instructions"]),
+            "stack_bytes": max(0, est["m4f"]["stack_worst"]["bytes"] - BUDGET["stack_bytes"]),
+            "flash_bytes": max(0, est["m4f"]["sizes"]["flash"] - BUDGET["flash_bytes"]),
+            "ram_bytes": max(0, est["m4f"]["ram_bytes"] - BUDGET["ram_bytes"])}
     return report
 
 
@@ -185,6 +215,15 @@ def pinned_view(report: dict) -> dict:
                      "traces": {tr: {"instructions": v["instructions"],
                                      "stack_used_bytes": v["stack_used_bytes"]}
                                 for tr, v in e["traces"].items()}}
+    est = report.get("estimator", {})
+    if est:
+        out["estimator"] = {
+            name: {"flash_bytes": e["sizes"]["flash"], "ram_bytes": e["ram_bytes"],
+                   "stack_worst_bytes": e["stack_worst"]["bytes"],
+                   "traces": {tr: {k: v[k] for k in ("instructions", "stack_used_bytes",
+                                                      "float32_vs_double") if k in v}
+                              for tr, v in e["traces"].items()}}
+            for name, e in est.items()}
     return out
 
 
@@ -204,6 +243,14 @@ def checks(report: dict, pinned) -> list:
                          ("flash_bytes", m4["sizes"]["flash"]), ("ram_bytes", m4["ram_bytes"])):
             if got > BUDGET[key]:
                 bad.append(f"m4f: {key} {got} over the budget of {BUDGET[key]}")
+    for name, e in report.get("estimator", {}).items():
+        for tr, v in e["traces"].items():
+            if not v["bit_exact"]:
+                bad.append(f"{name} {tr} with the {v['build']} estimator: not bit-exact with "
+                           f"{v['reference']} ({v['difference']})")
+            if v.get("soft_double_calls"):
+                bad.append(f"{name} {tr}: the float32 estimator calls software double "
+                           f"routines {', '.join(v['soft_double_calls'])}")
     cyc = report.get("m4f_cycles")
     if cyc and cyc["cpi"] > ASSUMED_CPI:
         bad.append(f"m4f: the executed mix costs {cyc['cpi']:.2f} cycles an instruction, over "
@@ -228,6 +275,7 @@ def render(r: dict) -> None:
             for cls, s in v["instructions"].items():
                 print(f"    {cls:10} {s['ticks']:6} ticks  p50 {s['p50']:6}  p99 {s['p99']:6}"
                       f"  max {s['max']:6}")
+    pil_cov.render(r.get("estimator", {}))
     cov = r["coverage"]
     print(f"c/ecu_fx.c on the traces: {cov['lines_run']} of {cov['lines']} lines, "
           f"{cov['branch_edges_taken']} of {cov['branch_edges']} branch edges; never run: "

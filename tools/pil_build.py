@@ -42,6 +42,12 @@ TARGETS = {
                  "Cortex-M7 (double-precision FPU), MPS2 AN500"),
 }
 ECU_SOURCES = ("ecu_fx.c", "ecu_tables.c")
+COV_SOURCES = ECU_SOURCES + ("akf_cov.c",)
+# the estimator's build (c/akf_cov.h): double on the M7, float32 on the M4F (its FPU is
+# single precision: a double would be a software routine); -fno-math-errno lets sqrt be the
+# FPU's instruction (no errno to set; the same values)
+COV_FLAGS = {"m4f": ("-DPIL_COV", "-DAKF_FLOAT", "-Wdouble-promotion", "-fno-math-errno"),
+             "m7": ("-DPIL_COV", "-fno-math-errno")}
 
 
 class PilError(RuntimeError):
@@ -63,25 +69,36 @@ def _run(cmd, **kw) -> subprocess.CompletedProcess:
     return res
 
 
-def build(target: Target, out: Path, gen: Path = GEN) -> Path:
+def build(target: Target, out: Path, gen: Path = GEN, cov: bool = False) -> Path:
     """The image for ``target`` in ``out`` (objects, .su and .ci files beside it); returns
-    the ELF's path. A warning is an error."""
+    the ELF's path. ``cov``: with the covariance side of the filter in C (``COV_FLAGS``). A
+    warning is an error."""
     cc = tool("arm-none-eabi-gcc")
     out.mkdir(parents=True, exist_ok=True)
     base = [cc, "--specs=picolibc.specs", *target.flags, *CFLAGS, f"-I{gen}", f"-I{C_DIR}",
-            f"-I{PIL_DIR}"]
+            f"-I{PIL_DIR}", *(COV_FLAGS[target.name] if cov else ())]
     sources = {"ecu_fx.c": C_DIR / "ecu_fx.c", "ecu_tables.c": gen / "ecu_tables.c",
                "harness.c": PIL_DIR / "harness.c", "startup.c": PIL_DIR / "startup.c"}
+    if cov:
+        sources["akf_cov.c"] = C_DIR / "akf_cov.c"
+    ecu = COV_SOURCES if cov else ECU_SOURCES
     objs = []
     for name, src in sources.items():
         obj = out / (Path(name).stem + ".o")
-        extra = ["-fstack-usage", "-fcallgraph-info=su"] if name in ECU_SOURCES else []
+        extra = ["-fstack-usage", "-fcallgraph-info=su"] if name in ecu else []
         _run([*base, *extra, "-c", str(src), "-o", str(obj)], cwd=out)
         objs.append(obj)
     elf = out / "pil.elf"
     _run([*base, "-nostartfiles", "-T", str(PIL_DIR / "pil.ld"), *map(str, objs), "-o",
-          str(elf)])
+          str(elf), "-lm"])
     return elf
+
+
+def soft_double_calls(obj: Path) -> list:
+    """The software double-precision routines (``__aeabi_d*``) an object calls."""
+    res = _run([tool("arm-none-eabi-nm"), "-u", str(obj)])
+    return sorted({ln.split()[-1] for ln in res.stdout.splitlines()
+                   if ln.split() and ln.split()[-1].startswith("__aeabi_d")})
 
 
 def qemu_command(target: Target, elf: Path) -> list:
@@ -95,10 +112,10 @@ def instructions(counts: int) -> int:
     return round(counts * NS_PER_COUNT / 2 ** ICOUNT_SHIFT)
 
 
-def sizes(out: Path) -> dict:
+def sizes(out: Path, sources=ECU_SOURCES) -> dict:
     """Flash (text + data) and static RAM (data + bss) of the ECU's objects, in bytes."""
     res = _run([tool("arm-none-eabi-size"), "-B",
-                *(str(out / (Path(n).stem + ".o")) for n in ECU_SOURCES)])
+                *(str(out / (Path(n).stem + ".o")) for n in sources)])
     text = data = bss = 0
     for line in res.stdout.splitlines()[1:]:
         t, d, b = (int(v) for v in line.split()[:3])
@@ -111,12 +128,12 @@ _EDGE = re.compile(r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"')
 _STACK = re.compile(r"(\d+) bytes \((static|dynamic|bounded)")
 
 
-def worst_stack(out: Path, root: str = "fx_tick") -> dict:
+def worst_stack(out: Path, root: str = "fx_tick", sources=ECU_SOURCES) -> dict:
     """The deepest stack from ``root`` over the call graph of the ECU's objects (gcc's .ci
     files): the sum of the frames along the worst path. A call out of the graph (a library
     function) or a recursion is named: either makes the figure a lower bound."""
     frames, calls, kinds = {}, {}, {}
-    for name in ECU_SOURCES:
+    for name in sources:
         text = (out / (Path(name).stem + ".ci")).read_text()
         for title, label in _NODE.findall(text):
             key = title.split(":")[-1]

@@ -11,7 +11,7 @@ import json
 import subprocess
 from pathlib import Path
 
-from tools.c_build import C_DIR, compile_c, replay_input
+from tools.c_build import C_DIR, compile_c, replay_input, replay_sources
 
 
 def coverage(runs, work: Path) -> dict:
@@ -21,8 +21,7 @@ def coverage(runs, work: Path) -> dict:
     for k, (gen, rec) in enumerate(runs):
         d = work / f"cov{k}"
         d.mkdir(parents=True, exist_ok=True)
-        exe = compile_c(d / "replay", [C_DIR / "ecu_fx.c", C_DIR / "trace_replay.c",
-                                       gen / "ecu_tables.c"], "--coverage", "-O0", gen=gen)
+        exe = compile_c(d / "replay", replay_sources(gen), "--coverage", "-O0", gen=gen)
         subprocess.run([str(exe)], input=replay_input(rec), capture_output=True, text=True,
                        check=True, cwd=d)
         gcda = sorted(d.glob("*ecu_fx.gcda"))

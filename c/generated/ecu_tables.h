@@ -476,6 +476,74 @@ extern const uint8_t DEGRADE_MODES[4];
 #define AKF_Q_GQ_NOMINAL_Q31 ((int32_t)1125899907)
 #define AKF_Q_GQ_NOMINAL_Q31_FRAC 42
 
+/* AKF covariance side in double, bit for bit (firmware.kernels.akf, c/akf_cov.c) */
+#define AKF_PHI_F64_LEN 25
+#define AKF_PHI_F64 { \
+    0x1.fe5430a06d5f3p-1, 0x1.ab73e3290c450p-9, -0x1.f878278e2625ep-5, 0x1.b5888b792bd8cp-5, \
+    0x1.0bb01209415d4p-7, 0x1.ab73e3290c450p-6, 0x1.f15fb17902e47p-1, 0x1.f80bc27514ea2p-2, \
+    -0x1.5b0df4e8a8559p+2, 0x1.3b73b9f0dc28dp+2, 0x1.05b7267bd357bp-10, 0x1.b6abee83becd7p-20, \
+    0x1.fffbf1b769e5ap-1, 0x1.d9661642e9a48p-16, 0x1.6de2ed52ca063p-19, 0x1.b6abee83bed20p-17, \
+    0x1.027ffa10a9987p-10, 0x1.03765aa284191p-12, 0x1.fe9ae1c6f6f61p-1, 0x1.449dfb4c34826p-9, \
+    0x0.0p+0, 0x1.0000000000000p-59, 0x0.0p+0, 0x0.0p+0, \
+    0x1.ffadabc025f3cp-1 }
+#define AKF_GAMMA_F64_LEN 5
+#define AKF_GAMMA_F64 { \
+    0x1.9d42e4314629cp-19, -0x1.9cea1821a774bp-16, 0x1.a947eb8fe978bp-30, -0x1.a91a6286601dbp-27, \
+    0x1.0000000000000p-69 }
+#define AKF_Q_UNIT_F64_LEN 25
+#define AKF_Q_UNIT_F64 { \
+    0x1.cb4939087bac9p-27, 0x1.5314c87d7793fp-17, 0x1.057870f2fb21fp-38, 0x1.16b99204ef3a4p-28, \
+    0x1.6db6cee067b7ap-19, 0x1.5314c87d7793fp-17, 0x1.0b572b8714d25p-7, 0x1.7276db5b9a404p-29, \
+    0x1.9ba0459716774p-19, 0x1.447b38e2a72a0p-9, 0x1.057870f2fb21fp-38, 0x1.7276db5b9a404p-29, \
+    0x1.323e6ea4d323ep-50, 0x1.3d50ae5ea9988p-40, 0x1.76b880761531ep-31, 0x1.16b99204ef3a4p-28, \
+    0x1.9ba0459716774p-19, 0x1.3d50ae5ea9988p-40, 0x1.524c19a15ff8dp-30, 0x1.bc129855b31a2p-21, \
+    0x1.6db6cee067b7ap-19, 0x1.447b38e2a72a0p-9, 0x1.76b880761531ep-31, 0x1.bc129855b31a2p-21, \
+    0x1.05fab74623545p-10 }
+#define AKF_H_F64_LEN 15
+#define AKF_H_F64 { \
+    -0x1.a400000000000p+1, 0x1.a400000000000p+1, -0x1.f400000000000p+5, 0x1.f400000000000p+5, \
+    0x0.0p+0, 0x0.0p+0, 0x0.0p+0, 0x1.0000000000000p+0, \
+    -0x1.0000000000000p+0, 0x0.0p+0, 0x1.a400000000000p+4, -0x1.a400000000000p+4, \
+    0x1.f400000000000p+8, -0x1.57c0000000000p+12, 0x1.3880000000000p+12 }
+#define AKF_R0_F64_LEN 9
+#define AKF_R0_F64 { \
+    0x1.0b3e291833c87p-11, 0x0.0p+0, -0x1.812f2d197ab69p-11, 0x0.0p+0, \
+    0x1.5e6d6918cd080p-27, 0x0.0p+0, -0x1.812f2d197ab69p-11, 0x0.0p+0, \
+    0x1.21727f5bbaa51p-6 }
+#define AKF_R_FLOOR_F64_LEN 3
+#define AKF_R_FLOOR_F64 { \
+    0x1.2c2583844b05ep-16, 0x1.b51ebd7111199p-33, 0x1.d4fa9d7eb5393p-10 }
+#define AKF_R_SCALE_F64_LEN 9
+#define AKF_R_SCALE_F64 { \
+    0x1.2c2583844b05ep-16, 0x1.0020030040050p-24, 0x1.772ee4655dc75p-13, 0x1.0020030040050p-24, \
+    0x1.b51ebd7111199p-33, 0x1.402803c050064p-21, 0x1.772ee4655dc75p-13, 0x1.402803c050064p-21, \
+    0x1.d4fa9d7eb5392p-10 }
+#define AKF_P0_F64_LEN 25
+#define AKF_P0_F64 { \
+    0x1.a26aba28059e9p-7, 0x1.8108cfe8739dfp-10, -0x1.b3dca0551ca4cp-59, 0x1.283ae688c5b70p-11, \
+    0x1.0722f66bd37acp-11, 0x1.8108cfe8739dfp-10, 0x1.756628a4169f7p-4, -0x1.283ae688c67a8p-11, \
+    -0x1.8446590e37ac4p-52, 0x1.08bf80e790fb4p-11, -0x1.b3dca0551ca4cp-59, -0x1.283ae688c67a8p-11, \
+    0x1.04fb5653dcba8p-10, 0x1.ada90c9f3293ep-11, 0x1.a2cb7c1978d62p-11, 0x1.283ae688c5b70p-11, \
+    -0x1.8446590e37ac4p-52, 0x1.ada90c9f3293ep-11, 0x1.b02697a3b7bd2p-11, 0x1.a55c10677a29ep-11, \
+    0x1.0722f66bd37acp-11, 0x1.08bf80e790fb4p-11, 0x1.a2cb7c1978d62p-11, 0x1.a55c10677a29ep-11, \
+    0x1.a5a84d380747dp-11 }
+#define AKF_FORGETTING_F64 0x1.ffbe76c8b4396p-1
+#define AKF_GAMMA_WHEEL_F64_LEN 5
+#define AKF_GAMMA_WHEEL_F64 { \
+    0x1.5eeff202ff0a8p-25, 0x1.9d99901aa8f47p-16, 0x1.dfa6697115ae0p-37, 0x1.a9924c20bbe0bp-27, \
+    -0x1.0000000000000p-69 }
+#define AKF_LIFT_FORCE_VAR_F64 0x0.0p+0
+#define AKF_CURRENT_FORCE_VAR_F64 0x1.7d86a3348db9bp+24
+#define AKF_STROKE_FORCE_VAR_F64 0x0.0p+0
+#define AKF_R_CEILING_F64 0x1.7d78400000000p+26
+#define AKF_JACOBI_SWEEPS 60
+#define AKF_SKIP_SCALE_F64 0x1.d1a94a2000000p+39
+#define AKF_COV_ADAPT 8
+#define AKF_COV_LIFTED 16
+#define AKF_COV_CURRENT_UNKNOWN 32
+#define AKF_COV_STROKE_UNKNOWN 64
+#define AKF_COV_RESTART 128
+
 /* fixed-point control path (firmware/fx, c/ecu_fx.c) */
 #define FX_F_ACC 20
 #define FX_F_VEL 24

@@ -13,17 +13,35 @@
  * The clock: SysTick on the processor clock, which QEMU's MPS2 boards run at 25 MHz of
  * virtual time; with -icount shift=7 every instruction advances that time by 128 ns, so a
  * SysTick count is 40/128 of an instruction and the host recovers the exact instruction
- * count of a tick (round(counts * 128 / 40) after the empty measurement is subtracted). */
+ * count of a tick (round(counts * 128 / 40) after the empty measurement is subtracted).
+ *
+ * Built with -DPIL_COV (and -DAKF_FLOAT for float32): the tick is fx_tick_cov, the covariance
+ * side of the filter in C (akf_cov.c). In: counts[4], q_road as the bytes of an akf_real in
+ * two words (float32: the first), flags want passive fault regen. Out: the outputs above,
+ * then k[5*FX_N_MEAS] (the Q gain handed to fx_correct) and the float gain K row-major as the
+ * bytes of akf_reals (2 words each in double, 1 in float32), then the counts and the class. */
 #include <stdint.h>
 #include <string.h>
 
 #include "ecu_fx.h"
 #include "semihost.h"
+#ifdef PIL_COV
+#include "akf_cov.h"
+#endif
 
 #define PIL_MAGIC 0x214C4950u   /* "PIL!" */
 #define CHUNK 64
+#ifdef PIL_COV
+#define N_OUT (2 + 5 + FX_N_MEAS + 2 + 5 * FX_N_MEAS + 10 * FX_N_MEAS)
+#define N_IN (4 + 2 + 5)
+typedef akf_in_t tick_in_t;
+#define STATE_BYTES (sizeof(fx_state_t) + sizeof(akf_cov_t))
+#else
 #define N_OUT (2 + 5 + FX_N_MEAS + 2)
 #define N_IN (4 + 5 * FX_N_MEAS + FX_N_MEAS + 5)
+typedef fx_in_t tick_in_t;
+#define STATE_BYTES sizeof(fx_state_t)
+#endif
 
 #define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
 #define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
@@ -35,7 +53,10 @@ extern uint32_t __stack_limit;
 static int32_t in_buf[CHUNK][N_IN];
 static int32_t out_buf[CHUNK][N_OUT + 2];
 static fx_state_t state;
-static fx_in_t tick_in;
+static tick_in_t tick_in;
+#ifdef PIL_COV
+static akf_cov_t cov;
+#endif
 
 static uint32_t now(void)
 {
@@ -63,6 +84,20 @@ static uint32_t lowest_touched(void)
     return (uint32_t)p;
 }
 
+#ifdef PIL_COV
+static void unpack(const int32_t *w, akf_in_t *in)
+{
+    int i;
+    for (i = 0; i < 4; i++) in->counts[i] = *w++;
+    memcpy(&in->q_road, w, sizeof in->q_road);
+    w += 2;
+    in->flags = *w++;
+    in->want = *w++;
+    in->passive = *w++;
+    in->fault = *w++;
+    in->regen = *w;
+}
+#else
 static void unpack(const int32_t *w, fx_in_t *in)
 {
     int i;
@@ -75,6 +110,7 @@ static void unpack(const int32_t *w, fx_in_t *in)
     in->regen = *w++;
     in->reset = *w;
 }
+#endif
 
 static void pack(const fx_state_t *s, int32_t *w)
 {
@@ -84,7 +120,12 @@ static void pack(const fx_state_t *s, int32_t *w)
     for (i = 0; i < 5; i++) *w++ = s->x[i];
     for (i = 0; i < FX_N_MEAS; i++) *w++ = s->resid[i];
     *w++ = s->integ;
-    *w = s->voltage;
+    *w++ = s->voltage;
+#ifdef PIL_COV
+    for (i = 0; i < 5 * FX_N_MEAS; i++) *w++ = cov.k_q[i];
+    memset(w, 0, 10 * FX_N_MEAS * sizeof *w);
+    memcpy(w, cov.K, sizeof cov.K);
+#endif
 }
 
 int main(void)
@@ -105,6 +146,9 @@ int main(void)
     t1 = now();
     empty = elapsed(t0, t1);
     fx_init(&state);
+#ifdef PIL_COV
+    akf_cov_init(&cov);
+#endif
     __asm volatile("mov %0, sp" : "=r"(sp_at_call));
     for (;;) {
         int32_t left = sh_read(fin, in_buf, sizeof in_buf);
@@ -117,7 +161,11 @@ int main(void)
             unpack(in_buf[k], &tick_in);
             xf = tick_in.want != state.ctrl || state.ramp < FX_RAMP_TICKS;
             t0 = now();
+#ifdef PIL_COV
+            fx_tick_cov(&state, &cov, &tick_in);
+#else
             fx_tick(&state, &tick_in);
+#endif
             t1 = now();
             pack(&state, out_buf[k]);
             out_buf[k][N_OUT] = (int32_t)elapsed(t0, t1);
@@ -135,8 +183,8 @@ int main(void)
     trailer[1] = ticks;
     trailer[2] = sp_at_call - lowest_touched();
     trailer[3] = empty;
-    trailer[4] = sizeof(fx_state_t);
-    trailer[5] = sizeof(fx_in_t);
+    trailer[4] = STATE_BYTES;
+    trailer[5] = sizeof(tick_in_t);
     if (sh_write(fout, trailer, sizeof trailer) != 0) {
         return 2;
     }

@@ -199,6 +199,7 @@ def enter(P, S, j: int, tick: int) -> None:
     akf.init(P.akf, S.akf)
     S.fx.x[:] = 0                        # (the fixed-point path's: the parity trace's reset)
     S.fx.reset = True
+    S.fx.cov_flags |= akf.COV_RESTART    # (and the C estimator's replay: its restart)
     D = S.degrade
     D.sensor, D.since, D.ok_since = j, tick, -1
     D.named[j] += 1

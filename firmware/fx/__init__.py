@@ -14,14 +14,16 @@ function:
 | ``lqr_force`` | ``dot_state``, ``lqr_force`` |
 | ``force_of`` (skyhook, regen inline) | ``force_of``, ``skyhook_force``, ``regen_force`` |
 | ``control`` | ``fx_control`` |
+| ``estimate.estimate`` (the float half) | ``akf_cov_step``, ``fx_tick_cov`` (``c/akf_cov.c``) |
 | ``current_reference``, ``actuator_step``, ``actuator_reset`` | ``current_reference``, ``actuator_step``, ``actuator_reset`` |
 
 One ECU tick on this path (``firmware.ecu.Ecu(params, tables)``):
 
   1. ``measure``  counts -> Q signals; measured force; x_pred = Phi x + Gamma u;
                   residual z - H x_pred - D u                                      (integer)
-  2. the adaptive part of the Kalman filter in float: from the residual it adapts R-hat,
-     computes P and the gain K (``firmware.kernels.akf.gain_ws``), handed over as Q numbers
+  2. the adaptive part of the Kalman filter in float (``firmware.fx.estimate``; C:
+     ``c/akf_cov.c``, ``akf_cov_step``): from the residual it adapts R-hat, computes P and
+     the gain K (``firmware.kernels.akf.gain_ws``), handed over as Q numbers
      (``quantize_gain``), as a background task hands its result to the control interrupt
   3. ``correct``  x += K (residual - r)                                            (integer)
   4. road grade, road-holding check and mode logic in float, from x               (supervisor)

@@ -38,6 +38,8 @@ def state_dtype(m: int) -> np.dtype:
         ("gain_saturations", "i8"),
         # this tick's hand-over from the float half (the parity trace's k, r, reset)
         ("counts", "i8", (4,)), ("k_q", "i8", (5 * m,)), ("r_q", "i8", (m,)), ("reset", "u1"),
+        # (what the float half took in and gave: the C estimator's replay, c/akf_cov.c)
+        ("q_road", "f8"), ("cov_flags", "i8"), ("k_f", "f8", (5 * m,)),
         ("want", "i8"), ("passive", "u1"), ("fault", "u1"), ("regen", "u1"),
         # (scratch: the network's input, hidden and output activations, deltas)
         ("xin", "i8", (4,)), ("h", "i8", (5,)), ("g", "i8", (3,)), ("d_o", "i8", (3,)),
@@ -114,6 +116,7 @@ def quantize_gain(T, S, K) -> None:
     m = T.n_meas
     for idx in range(5 * m):
         v = K[idx // m, idx % m]
+        S.k_f[idx] = v
         q = to_fixed(v, T.k_frac[idx]) if math.isfinite(v) else 0
         if q == INT32_MAX or q == INT32_MIN:
             S.gain_saturations += 1

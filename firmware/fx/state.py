@@ -20,3 +20,7 @@ class TickIn:
     fault: bool
     regen: bool
     reset: bool = False   # the float supervisor reset the estimate (non-finite covariance)
+    # what the covariance side took in and gave (the C estimator's replay, c/akf_cov.h):
+    q_road: float = 0.0   # the road's process-noise intensity
+    cov_flags: int = 0    # firmware.akf.COV_ bits
+    k_f: tuple = ()       # the float gain (5*m), row-major

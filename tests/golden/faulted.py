@@ -104,6 +104,17 @@ def uds_answers(ecu, params, tick: int) -> list[bytes]:
     return [uds.handle(ecu.diag, params, tick, r) or b"" for r in reqs]
 
 
+# the hand-over's fields the digests were pinned over (TickIn since gained the covariance
+# side's inputs and gain, q_road, cov_flags, k_f: tests/test_c_parity.py checks those bit for
+# bit against the C estimator)
+PINNED_FIELDS = ("counts", "k_q", "r_q", "want", "passive", "fault", "regen", "reset")
+
+
+def _hand_over_repr(tin, out) -> str:
+    fields = ", ".join(f"{f}={getattr(tin, f)!r}" for f in PINNED_FIELDS)
+    return f"(TickIn({fields}), {out!r})"     # (the repr of the (TickIn, outputs) pair)
+
+
 def drive(name: str) -> dict:
     """One of ``DRIVES``: its digests and what it reached (the confirmed DTCs)."""
     from calib.fx_tables import build_tables
@@ -121,7 +132,7 @@ def drive(name: str) -> dict:
     for inp in inputs:
         h.update(repr(tuple(ecu.step(inp))).encode())
         if fixed:
-            h.update(repr(ecu.log[-1]).encode())
+            h.update(_hand_over_repr(*ecu.log[-1]).encode())
             ecu.log.clear()
     res = {"outputs_sha256": h.hexdigest()}
     if reset_at is not None:
