@@ -27,6 +27,18 @@ static int read_int(long *v)
     return scanf("%ld", v) == 1;
 }
 
+/* A tick line's controller and mode flags (want passive fault regen): 1 read, 0 not. */
+static int read_mode(int *want, int *passive, int *fault, int *regen)
+{
+    long v[4];
+    int i;
+    for (i = 0; i < 4; i++) {
+        if (!read_int(&v[i])) return 0;
+    }
+    *want = (int)v[0], *passive = (int)v[1], *fault = (int)v[2], *regen = (int)v[3];
+    return 1;
+}
+
 /* One tick's line into *in: 1 read, 0 end of input, -1 malformed. */
 static int read_tick(fx_in_t *in)
 {
@@ -39,14 +51,7 @@ static int read_tick(fx_in_t *in)
     for (i = 1; i < 4 && ok; i++) ok = read_int(&v), in->counts[i] = (int32_t)v;
     for (i = 0; i < 5 * FX_N_MEAS && ok; i++) ok = read_int(&v), in->k[i] = (int32_t)v;
     for (i = 0; i < FX_N_MEAS && ok; i++) ok = read_int(&v), in->r[i] = (int32_t)v;
-    ok = ok && read_int(&v);
-    in->want = (int)v;
-    ok = ok && read_int(&v);
-    in->passive = (int)v;
-    ok = ok && read_int(&v);
-    in->fault = (int)v;
-    ok = ok && read_int(&v);
-    in->regen = (int)v;
+    ok = ok && read_mode(&in->want, &in->passive, &in->fault, &in->regen);
     ok = ok && read_int(&v);
     in->reset = (int)v;
     return ok ? 1 : -1;
@@ -96,14 +101,7 @@ static int read_cov_tick(akf_in_t *in)
     in->q_road = (akf_real)q;
     ok = ok && read_int(&v);
     in->flags = (int)v;
-    ok = ok && read_int(&v);
-    in->want = (int)v;
-    ok = ok && read_int(&v);
-    in->passive = (int)v;
-    ok = ok && read_int(&v);
-    in->fault = (int)v;
-    ok = ok && read_int(&v);
-    in->regen = (int)v;
+    ok = ok && read_mode(&in->want, &in->passive, &in->fault, &in->regen);
     return ok ? 1 : -1;
 }
 

@@ -26,15 +26,13 @@ COV_TARGET_BUILD = {"m4f": "float32", "m7": "double"}
 def cov_array(rec, double: bool) -> np.ndarray:
     """The record as c/pil/harness.c's PIL_COV rows: counts[4], q_road as the bytes of the
     target's akf_real in two words, flags want passive fault regen."""
-    q = np.asarray([i.q_road for i, _ in rec], dtype="<f8" if double else "<f4")
-    qw = q.view("<i4").reshape(len(rec), -1)
-    if not double:
-        qw = np.concatenate([qw, np.zeros_like(qw)], axis=1)
-    rest = np.asarray([[-1 if v is None else v for v in i.counts] for i, _ in rec],
-                      dtype="<i4")
-    tail = np.asarray([[i.cov_flags, i.want, int(i.passive), int(i.fault), int(i.regen)]
-                       for i, _ in rec], dtype="<i4")
-    return np.concatenate([rest, qw.astype("<i4"), tail], axis=1)
+    q = np.zeros((len(rec), 2), dtype="<i4")     # (float32: the first word, the second 0)
+    qv = np.asarray([i.q_road for i, _ in rec], dtype="<f8" if double else "<f4")
+    q[:, :qv.itemsize // 4] = qv.view("<i4").reshape(len(rec), -1)
+    head = [[-1 if v is None else v for v in i.counts] for i, _ in rec]
+    tail = [[i.cov_flags, i.want, int(i.passive), int(i.fault), int(i.regen)] for i, _ in rec]
+    return np.concatenate([np.asarray(head, dtype="<i4"), q, np.asarray(tail, dtype="<i4")],
+                          axis=1)
 
 
 def split(out: np.ndarray, double: bool) -> tuple:
