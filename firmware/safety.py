@@ -126,7 +126,7 @@ RX_CHECKS = (
     RxCheck("DRIVER_REQUEST", 100, 0, True, 0.0),
 )
 TX_MESSAGES = ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES", "MODE_RECOMMEND",
-               "DIAG_RESPONSE")
+               "DIAG_RESPONSE", "XCP_RES")
 
 
 # ---------------------------------------------------------------- frame validity

@@ -54,7 +54,7 @@ def test_candump_log_is_dated_from_the_start_with_channel_and_direction(run):
     assert stamps == sorted(stamps) and START_S <= stamps[-1] < START_S + 3.01
     tx = dut_tx_ids()
     assert tx == {ID[n] for n in ("ACTUATOR_CMD", "ECU_STATUS", "ECU_ESTIMATES",
-                                  "MODE_RECOMMEND", "DIAG_RESPONSE")}
+                                  "MODE_RECOMMEND", "DIAG_RESPONSE", "XCP_RES")}
     for line in lines:                # T: the ECU (the device under test) sent it; R: others
         fid = int(line.split()[2].split("#")[0], 16)
         assert line.endswith(" T" if fid in tx else " R"), line

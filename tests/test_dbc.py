@@ -23,11 +23,12 @@ def test_dbc_loads_in_cantools_and_canmatrix_and_follows_conventions():
     for m in CODEC.db.messages:
         assert m.name == m.name.upper(), m.name
         # every message is cyclic, except the event-only simulation tick of fault injection
-        # and the diagnostic request and response
+        # and the diagnostic (UDS, XCP) requests and responses
         event = m.dbc.attributes["GenMsgSendType"].value == "Event" \
             if "GenMsgSendType" in m.dbc.attributes else False
         assert bool(m.cycle_time) != event, m.name
-        assert not event or m.name in ("SIM_TICK", "DIAG_REQUEST", "DIAG_RESPONSE"), m.name
+        assert not event or m.name in ("SIM_TICK", "DIAG_REQUEST", "DIAG_RESPONSE", "XCP_CMD",
+                                        "XCP_RES"), m.name
         for s in m.signals:
             assert s.name == s.name.upper() and s.byte_order == "little_endian"
         if m.name in SAFETY_RELEVANT:

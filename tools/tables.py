@@ -3,8 +3,10 @@ header and source.
 
     python -m tools.tables [--out DIR] [--vehicle FILE] [--gains FILE] [--design FILE] [--check] [--json]
 
-writes DIR/ecu_tables.h and DIR/ecu_tables.c (default DIR: c/generated). ``--check`` writes
-nothing and exits 1 when the files in DIR differ from what would be generated.
+writes DIR/ecu_tables.h and DIR/ecu_tables.c (default DIR: c/generated), and the ECU's memory
+image: its A2L (DIR/ecu.a2l, ``calib.a2l``) and the image as C (ecu_image.h/.c/.ld,
+``calib.image_c``). ``--check`` writes nothing and exits 1 when the files in DIR differ from
+what would be generated.
 """
 
 from __future__ import annotations
@@ -13,13 +15,23 @@ import argparse
 import hashlib
 from pathlib import Path
 
-from calib.c_tables import generate
+from calib import a2l
+from calib.c_tables import GENERATOR, build, generate, inputs_digest
+from calib.image import Image
 from hil.cli import (add_design_argument, add_json_argument, add_vehicle_argument, design_or_exit,
                      emit, fail, vehicle_or_exit)
 from hil.config import ConfigError
+from hil.transport.codec import Codec
+from calib.options import DesignOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "c" / "generated"
+
+
+def xcp_ids() -> a2l.CanIds:
+    """XCP on CAN's identifiers, from the DBC."""
+    codec = Codec()
+    return a2l.CanIds(codec.message("XCP_CMD").frame_id, codec.message("XCP_RES").frame_id)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,8 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     cfg = vehicle_or_exit(args.vehicle)
     opts = design_or_exit(args.design)
+    gains = Path(args.gains) if args.gains else None
     try:
-        files = generate(cfg, Path(args.gains) if args.gains else None, opts)
+        p = build(cfg, opts, gains)
+        files = generate(cfg, gains, opts, params=p)
+        files.update(a2l.files(Image(p), xcp_ids(), GENERATOR,
+                               inputs_digest(cfg, gains, opts or DesignOptions())))
     except ConfigError as exc:
         fail(str(exc))
     out = Path(args.out)
