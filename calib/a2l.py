@@ -32,13 +32,13 @@ EVENTS = (("ECU tick 1 ms", "1ms", 0, 1), ("ECU tick 10 ms", "10ms", 1, 10))
 TIMEOUTS_MS = (1000, 1000, 1000, 1000, 1000, 1000, 200)     # T1..T7
 PAGES = ("reference", "working")                            # page 0, 1 of the CAL segment
 OPTIONAL_CMDS = ("GET_COMM_MODE_INFO", "GET_ID", "GET_SEED", "UNLOCK", "SET_MTA", "UPLOAD",
-                 "SHORT_UPLOAD", "DOWNLOAD", "SHORT_DOWNLOAD", "SET_CAL_PAGE", "GET_CAL_PAGE",
-                 "GET_PAG_PROCESSOR_INFO", "GET_SEGMENT_INFO", "GET_PAGE_INFO", "CLEAR_DAQ_LIST",
-                 "SET_DAQ_PTR", "WRITE_DAQ", "SET_DAQ_LIST_MODE", "GET_DAQ_LIST_MODE",
-                 "START_STOP_DAQ_LIST", "START_STOP_SYNCH", "GET_DAQ_CLOCK",
+                 "SHORT_UPLOAD", "DOWNLOAD", "DOWNLOAD_NEXT", "SHORT_DOWNLOAD", "SET_CAL_PAGE",
+                 "GET_CAL_PAGE", "GET_PAG_PROCESSOR_INFO", "SET_DAQ_PTR", "WRITE_DAQ",
+                 "SET_DAQ_LIST_MODE", "START_STOP_DAQ_LIST", "START_STOP_SYNCH", "GET_DAQ_CLOCK",
                  "GET_DAQ_PROCESSOR_INFO", "GET_DAQ_RESOLUTION_INFO", "GET_DAQ_EVENT_INFO",
                  "FREE_DAQ", "ALLOC_DAQ", "ALLOC_ODT", "ALLOC_ODT_ENTRY")
-_LAYOUT = {"f8": "RL_F64", "i8": "RL_I64", "u1": "RL_U8"}
+MAX_BS = 40                    # DOWNLOAD_NEXT frames of a block: 240 bytes, 30 doubles
+_LAYOUT = {"f8": "RL_F64", "i8": "RL_I64", "i4": "RL_I32", "u1": "RL_U8"}
 
 
 @dataclass(frozen=True)
@@ -140,7 +140,8 @@ def _if_data_xcp(ids: CanIds) -> str:
       /begin PROTOCOL_LAYER 0x{XCP_VERSION:04X} {t} {MAX_CTO} {MAX_DTO}
         BYTE_ORDER_MSB_LAST ADDRESS_GRANULARITY_BYTE
 {cmds}
-        COMMUNICATION_MODE_SUPPORTED BLOCK SLAVE MASTER 0 0
+        /begin COMMUNICATION_MODE_SUPPORTED BLOCK SLAVE MASTER {MAX_BS} 0
+        /end COMMUNICATION_MODE_SUPPORTED
       /end PROTOCOL_LAYER
       /begin DAQ DYNAMIC {MAX_DAQ} {len(EVENTS)} 0 OPTIMISATION_TYPE_DEFAULT
         ADDRESS_EXTENSION_FREE IDENTIFICATION_FIELD_TYPE_ABSOLUTE

@@ -41,8 +41,8 @@ ALIGN_RAM = 0x100           # the inputs and outputs start on a 256-byte boundar
 EPK_LEN = 32
 
 # A2L datatypes of the records' numpy kinds
-DATATYPE = {"f8": "FLOAT64_IEEE", "i8": "A_INT64", "u1": "UBYTE"}
-_LIMIT = {"f8": 1e300, "i8": 2.0 ** 63, "u1": 255.0}
+DATATYPE = {"f8": "FLOAT64_IEEE", "i8": "A_INT64", "i4": "SLONG", "u1": "UBYTE"}
+_LIMIT = {"f8": 1e300, "i8": 2.0 ** 63, "i4": 2.0 ** 31, "u1": 255.0}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +62,7 @@ class Obj:
     name: str
     segment: str
     address: int
-    dtype: str                  # "f8", "i8", "u1"
+    dtype: str                  # "f8", "i8", "i4", "u1"
     shape: tuple                # () for a scalar
     path: tuple
     index: Optional[int] = None

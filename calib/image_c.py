@@ -11,7 +11,7 @@ import numpy as np
 from calib.image import EPK_LEN, Image
 
 HEADER, SOURCE, LINKER = "ecu_image.h", "ecu_image.c", "ecu_image.ld"
-CTYPE = {"f8": "double", "i8": "int64_t", "u1": "uint8_t"}
+CTYPE = {"f8": "double", "i8": "int64_t", "i4": "int32_t", "u1": "uint8_t"}
 # segment -> (C type, C symbol, section)
 SYMBOLS = {"CAL": ("ecu_cal_t", "ecu_cal"), "FX": ("ecu_fx_t", "ecu_fx"),
            "STATE": ("ecu_state_t", "ecu_state"), "INPUTS": ("ecu_inputs_t", "ecu_inputs"),

@@ -31,13 +31,15 @@ from firmware.kernels import INTERPRETED
 INPUTS = np.dtype([("tick", "i8"), ("counts", "i8", (len(CHANNELS),)), ("supply", "i8"),
                    ("req_kind", "i8"), ("req_mode", "i8"), ("req_counter", "i8"),
                    ("link_faults", "i8")])
-# one tick's outputs (firmware.ecu.Outputs' fields, in its order)
-OUTPUTS = np.dtype([("duty_q15", "i8"), ("regen", "u1"), ("enable", "u1"),
-                    ("recommended_mode", "i8"), ("active_mode", "i8"), ("grade", "i8"),
-                    ("faults", "i8"), ("reason", "i8"), ("events", "i8"), ("override", "u1"),
-                    ("force_cmd_n", "i8"), ("road_est_um", "i8"), ("dtd_est_um", "i8"),
-                    ("gq_est_log_c", "i8"), ("ba_rms_mmps2", "i8"), ("dtd_rms_um", "i8"),
-                    ("degraded", "i8")])
+# one tick's outputs (firmware.ecu.Outputs' fields, in its order): 32-bit integers, as the
+# trace hash packs them (hil.nodes.ecu.HASHED), so that a calibration tool's DAQ carries
+# one in 4 bytes of an ODT's 7 (docs/xcp.md)
+OUTPUTS = np.dtype([("duty_q15", "i4"), ("regen", "u1"), ("enable", "u1"),
+                    ("recommended_mode", "i4"), ("active_mode", "i4"), ("grade", "i4"),
+                    ("faults", "i4"), ("reason", "i4"), ("events", "i4"), ("override", "u1"),
+                    ("force_cmd_n", "i4"), ("road_est_um", "i4"), ("dtd_est_um", "i4"),
+                    ("gq_est_log_c", "i4"), ("ba_rms_mmps2", "i4"), ("dtd_rms_um", "i4"),
+                    ("degraded", "i4")])
 
 # fields a calibration may leave out (None), with the value the tick reads instead
 _NONE_AS = {"gamma_wheel": lambda p: np.zeros(5)}

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from calib import a2l, image_c
-from calib.image import Image, field
+from calib.image import DATATYPE, Image, field
 from firmware.ecu import Ecu, Inputs
 from calib.fx_tables import build_tables
 from hil.config import default_vehicle
@@ -57,7 +57,7 @@ def test_the_shipped_a2l_is_this_image_and_pya2ldb_reads_every_object(parsed):
         row = names[name]
         assert _address(row) == o.address, name
         if name in parsed["MEASUREMENT"]:
-            assert row.datatype == {"f8": "FLOAT64_IEEE", "i8": "A_INT64", "u1": "UBYTE"}[o.dtype]
+            assert row.datatype == DATATYPE[o.dtype]
             assert (list(row.matrix_dim.numbers) if row.matrix_dim else []) == list(o.shape)
         lo, hi = row.lowerLimit, row.upperLimit
         assert lo <= hi, name

@@ -237,8 +237,8 @@ def test_the_firmwares_receive_and_transmit_tables_match_the_dbc():
     from hil.nodes.sil import ecu_params
     from hil.config import default_vehicle
 
-    node = EcuNode(ecu_params(default_vehicle(), "auto"), codec)
-    assert node.listen - {ID["SIM_TICK"], ID["DIAG_REQUEST"]} == {
+    node = EcuNode(ecu_params(default_vehicle(), "auto"), codec, key=bytes(16))
+    assert node.listen - {ID["SIM_TICK"], ID["DIAG_REQUEST"], ID["XCP_CMD"]} == {
         ID[c.message] for c in safety.RX_CHECKS}
     speed = node.rx[ID["VEHICLE_SPEED"]]          # (its row of the compiled receive table)
     assert speed.timeout == 30 and speed.min_interval == 5

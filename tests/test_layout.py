@@ -104,4 +104,4 @@ def test_hil_holds_subpackages_and_at_most_four_modules_at_its_top():
     assert len(top - {"__init__.py", "__main__.py", "cli.py"}) <= 4
     subs = {p.name for p in (ROOT / "hil").iterdir() if (p / "__init__.py").is_file()}
     assert subs == {"apps", "bench", "faults", "kernels", "nodes", "report", "sim", "transport",
-                    "validate"}, subs
+                    "validate", "xcp"}, subs

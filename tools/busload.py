@@ -11,27 +11,14 @@ from __future__ import annotations
 import argparse
 
 from hil.cli import add_json_argument, emit
-from hil.transport.codec import DBC_PATH, Codec
-
-
-def frame_bits(dlc: int, worst_case: bool = True) -> int:
-    bits = 47 + 8 * dlc
-    if worst_case:
-        bits += (34 + 8 * dlc - 1) // 4
-    return bits
+from hil.transport.busload import cyclic
+from hil.transport.codec import DBC_PATH
 
 
 def bus_load(bitrate: float = 500_000.0) -> dict:
-    codec = Codec()
-    rows = []
-    for m in codec.db.messages:
-        if not m.cycle_time:
-            continue
-        rate = 1000.0 / m.cycle_time
-        bits = frame_bits(m.length)
-        rows.append({"message": m.name, "id": m.frame_id, "dlc": m.length,
-                     "cycle_ms": m.cycle_time, "bits_per_frame": bits,
-                     "bits_per_s": bits * rate, "load": bits * rate / bitrate})
+    rows = cyclic()
+    for r in rows:
+        r["load"] = r["bits_per_s"] / bitrate
     total = sum(r["bits_per_s"] for r in rows)
     return {"dbc": str(DBC_PATH), "bitrate": bitrate, "messages": rows,
             "total_bits_per_s": total, "load": total / bitrate}

@@ -6,7 +6,7 @@
 
 #include <stdint.h>
 
-#define ECU_IMAGE_EPK "SUSP_ECU_926010d10bf8494df52756b"
+#define ECU_IMAGE_EPK "SUSP_ECU_405d59258e6d9e377edd8d0"
 #define ECU_IMAGE_EPK_LEN 32
 #define ECU_IMAGE_IDENT_ADDR 0x100u
 #define ECU_IMAGE_IDENT_SIZE 32u
@@ -19,7 +19,7 @@
 #define ECU_IMAGE_INPUTS_ADDR 0x20002700u
 #define ECU_IMAGE_INPUTS_SIZE 88u
 #define ECU_IMAGE_OUTPUTS_ADDR 0x20002800u
-#define ECU_IMAGE_OUTPUTS_SIZE 115u
+#define ECU_IMAGE_OUTPUTS_SIZE 59u
 
 typedef struct __attribute__((packed)) {
     double range_min;
@@ -863,23 +863,23 @@ typedef struct __attribute__((packed)) {
     int64_t link_faults;
 } ecu_inputs_t;
 typedef struct __attribute__((packed)) {
-    int64_t duty_q15;
+    int32_t duty_q15;
     uint8_t regen;
     uint8_t enable;
-    int64_t recommended_mode;
-    int64_t active_mode;
-    int64_t grade;
-    int64_t faults;
-    int64_t reason;
-    int64_t events;
+    int32_t recommended_mode;
+    int32_t active_mode;
+    int32_t grade;
+    int32_t faults;
+    int32_t reason;
+    int32_t events;
     uint8_t override;
-    int64_t force_cmd_n;
-    int64_t road_est_um;
-    int64_t dtd_est_um;
-    int64_t gq_est_log_c;
-    int64_t ba_rms_mmps2;
-    int64_t dtd_rms_um;
-    int64_t degraded;
+    int32_t force_cmd_n;
+    int32_t road_est_um;
+    int32_t dtd_est_um;
+    int32_t gq_est_log_c;
+    int32_t ba_rms_mmps2;
+    int32_t dtd_rms_um;
+    int32_t degraded;
 } ecu_outputs_t;
 
 extern ecu_cal_t ecu_cal;
@@ -894,6 +894,6 @@ _Static_assert(sizeof(ecu_cal_t) == 11020u, "CAL size");
 _Static_assert(sizeof(ecu_fx_t) == 12145u, "FX size");
 _Static_assert(sizeof(ecu_state_t) == 9963u, "STATE size");
 _Static_assert(sizeof(ecu_inputs_t) == 88u, "INPUTS size");
-_Static_assert(sizeof(ecu_outputs_t) == 115u, "OUTPUTS size");
+_Static_assert(sizeof(ecu_outputs_t) == 59u, "OUTPUTS size");
 
 #endif /* ECU_IMAGE_H */

@@ -49,7 +49,7 @@ _RX_ROWS = {"VEHICLE_SPEED": (kb.R_SPEED, kb.M_SPEED),
             "PLANT_SENSORS": (kb.R_SENSORS, kb.M_SENSORS),
             "DRIVER_REQUEST": (kb.R_REQ, kb.M_REQ)}
 _NO_COUNTS = (adc.NO_SAMPLE,) * 4
-_SIM_TICK, _DIAG_REQUEST = ID["SIM_TICK"], ID["DIAG_REQUEST"]
+_SIM_TICK, _DIAG_REQUEST, _XCP_CMD = ID["SIM_TICK"], ID["DIAG_REQUEST"], ID["XCP_CMD"]
 
 
 class EcuNode:
@@ -109,10 +109,14 @@ class EcuNode:
         self._hrow = np.zeros(ken.ROW_BYTES, np.uint8)
         self._trow = np.zeros(len(ECU_TRACE), np.int64)
         # SIM_TICK (the simulated timer tick of a suppressed sensor frame) only in lockstep;
-        # DIAG_REQUEST: a tester's UDS over ISO-TP (hil.apps.diag.UdsServer, made on first use)
+        # DIAG_REQUEST: a tester's UDS over ISO-TP (hil.apps.diag.UdsServer, made on first use);
+        # XCP_CMD: a calibration tool's XCP (hil.xcp.port.XcpPort, made on first use; it
+        # needs the run's key for its seed and key)
         self.listen = set(self.rx_specs) | {ID["DIAG_REQUEST"]} | (
-            {ID["SIM_TICK"]} if lockstep else set())
+            {ID["SIM_TICK"]} if lockstep else set()) | ({_XCP_CMD} if key is not None else set())
         self.uds = None
+        self.xcp = None
+        self._key = key
         self.diag_sent = 0                  # DIAG_RESPONSE frames sent
         # known frames of others (and SIM_TRUTH): on_frame does nothing with them
         self.ignore = frozenset(ID.values()) - self.listen
@@ -178,6 +182,12 @@ class EcuNode:
             return []
         if fid == _DIAG_REQUEST:
             return self._diag(data)
+        if fid == _XCP_CMD:
+            if self.xcp is None:
+                from hil.xcp.port import XcpPort
+
+                self.xcp = XcpPort(self.state, self.codec, self._key)
+            return self.xcp.on_frame(data)
         mi = self._mi.get(fid)
         if mi is None:
             self._note_py(safety.FAULT_UNKNOWN_ID, f"0x{fid:X}")
@@ -231,6 +241,8 @@ class EcuNode:
             self._note_py(safety.FAULT_TIMEOUT, "PLANT_SENSORS:missing")
             s = None
         st = self.state
+        if self.xcp is not None:            # (calibration: between two ticks)
+            self.xcp.before_tick()
         c = s or _NO_COUNTS
         n, awaiting = ken.tick(self.E, self.M, self.F, self.fault_bits, self.RX, self.SEC,
                                self.crypto, st.P, st.T, st.S, st.I, st.O, s is not None,
@@ -243,6 +255,8 @@ class EcuNode:
             fid, dlc = frame_of[mi]
             frames.append((fid, out[i, :dlc].tobytes()))
         cmd = frames.pop(0)
+        if self.xcp is not None:            # (DAQ: the tick's end is its events' boundary)
+            frames += self.xcp.after_tick()
         # the command first in realtime (the plant waits for it); held in lockstep while a
         # MODE_RECOMMEND awaits its answer, else last
         if not self.lockstep:
@@ -276,6 +290,8 @@ class EcuNode:
         out = {name: n for name, n in out.items() if n}
         if self.diag_sent:
             out["DIAG_RESPONSE"] = self.diag_sent
+        if self.xcp is not None and self.xcp.sent:
+            out["XCP_RES"] = self.xcp.sent
         return out
 
     def summary(self) -> dict:
@@ -288,7 +304,8 @@ class EcuNode:
                 "uds_requests": self.uds.requests if self.uds else 0,
                 "isotp_errors": self.uds.errors if self.uds else 0, "ecu_resets": self.resets,
                 "fx_gain_saturations": self.state.gain_saturations,
-                "dtcs_confirmed": self.confirmed_dtcs()}
+                "dtcs_confirmed": self.confirmed_dtcs(),
+                **({"xcp": self.xcp.summary()} if self.xcp is not None else {})}
 
     def confirmed_dtcs(self) -> list[str]:
         """The DTCs whose confirmedDTC bit is set in the ECU's memory now, by name."""
