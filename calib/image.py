@@ -253,11 +253,12 @@ class Image:
         return next(s for s in self.segments if s.name == name)
 
     def _epk(self) -> str:
-        """Changes with the layout of any record and with the reference calibration."""
-        h = hashlib.sha256()
+        """The software and its memory layout: changes with the layout of any record (the
+        vehicle's array sizes among them) and with the software version, not with the data
+        (a run's mode or gains: the same A2L describes it)."""
+        h = hashlib.sha256(self.params.software_version.encode())
         for dt in (self.P.dtype, self.T.dtype, self.S_dtype, self.I_dtype, self.O_dtype):
             h.update(repr(dt.descr).encode())
-        h.update(self.P.tobytes() + self.T.tobytes())
         return ("SUSP_ECU_" + h.hexdigest())[:EPK_LEN]
 
     def _cal(self) -> list[Obj]:

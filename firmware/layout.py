@@ -28,9 +28,10 @@ from firmware.kernels import INTERPRETED
 # one tick's inputs: the ADC counts in firmware.adc.CHANNELS order (speed last), -1 where no
 # valid sample arrived; the supply voltage's counts (-1: no sample this tick); the driver's
 # latest request; the receive path's frame-fault bits
-INPUTS = np.dtype([("tick", "i8"), ("counts", "i8", (len(CHANNELS),)), ("supply", "i8"),
-                   ("req_kind", "i8"), ("req_mode", "i8"), ("req_counter", "i8"),
-                   ("link_faults", "i8")])
+# (32-bit integers, as the outputs: a calibration tool's DAQ reads the tick in 4 bytes)
+INPUTS = np.dtype([("tick", "i4"), ("counts", "i4", (len(CHANNELS),)), ("supply", "i4"),
+                   ("req_kind", "i4"), ("req_mode", "i4"), ("req_counter", "i4"),
+                   ("link_faults", "i4")])
 # one tick's outputs (firmware.ecu.Outputs' fields, in its order): 32-bit integers, as the
 # trace hash packs them (hil.nodes.ecu.HASHED), so that a calibration tool's DAQ carries
 # one in 4 bytes of an ODT's 7 (docs/xcp.md)

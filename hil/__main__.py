@@ -8,6 +8,8 @@
     python -m hil vcan [-- COMMAND ...]      (User-mode Linux with vcan0 up; hil/transport/vcan.py)
     python -m hil logdiff CANDUMP.log BUS.log [--json]
     python -m hil diag -i remote -c ws://127.0.0.1:PORT/ --secret-file DIR/hub.secret [--clear]
+    python -m hil xcp info|get|set|measure -i remote -c ws://... --secret-file DIR/hub.secret
+                      --key-file DIR/secoc.key ...                 (hil/apps/xcptool.py)
     python -m hil alarms [--routes R,..] [--seeds N] [--vehicles F,..] [--speeds V,..] [--json]
 """
 
@@ -25,7 +27,7 @@ from hil.report import verdict
 # the commands whose options include python-can's bus options: their parsers import can,
 # which imports every log format's library (asammdf and pandas: a quarter second); for any
 # other command they are not built (unless the command is unknown or help is asked for)
-BUS_COMMANDS = ("run", "plant", "ecu", "app", "faults", "diag")
+BUS_COMMANDS = ("run", "plant", "ecu", "app", "faults", "diag", "xcp")
 OTHER_COMMANDS = ("drive", "routes", "logdiff", "alarms", "keygen", "cache", "campaign",
                   "campaign-case", "campaign-report", "sim")
 
@@ -83,9 +85,10 @@ def _tool_parsers(sub, bus_parsers: bool) -> None:
     from hil.validate import alarms
 
     if bus_parsers:
-        from hil.apps import diag
+        from hil.apps import diag, xcpcli
 
         diag.add_parser(sub)
+        xcpcli.add_parser(sub)
     alarms.add_parser(sub)
     p = sub.add_parser("keygen", help="write a new SecOC key file (16 random bytes, mode 0600)")
     p.add_argument("file", metavar="FILE")
@@ -406,6 +409,12 @@ def _diag(args) -> int:
     return diag.main(args)
 
 
+def _xcp(args) -> int:
+    from hil.apps import xcpcli
+
+    return xcpcli.main(args)
+
+
 def _alarms(args) -> int:
     from hil.validate import alarms
 
@@ -480,7 +489,8 @@ def _drive(args) -> int:
 
 _COMMANDS = {"sim": _sim, "run": _run, "ecu": _node, "plant": _node,
              "app": _node, "campaign": _campaign, "campaign-report": _campaign,
-             "campaign-case": _campaign, "faults": _faults, "diag": _diag, "alarms": _alarms,
+             "campaign-case": _campaign, "faults": _faults, "diag": _diag, "xcp": _xcp,
+             "alarms": _alarms,
              "cache": _cache, "keygen": _keygen, "logdiff": _logdiff, "routes": _routes,
              "drive": _drive}
 

@@ -1,5 +1,6 @@
 """Process helpers of the bench tests: a process's children and command line, from /proc (no
-procps needed); a realtime run's verdict where only its timing may fail."""
+procps needed); a realtime run's verdict where only its timing may fail; a bench started
+with its hub's URL."""
 
 from pathlib import Path
 
@@ -36,3 +37,24 @@ def assert_only_timing_failed(returncode: int, rep: dict, timing=REALTIME_TIMING
     assert failed <= timing, [c for c in rep["checks"] if not c["ok"]]
     assert rep["verdict"] == ("fail" if failed else "pass")
     assert returncode == (1 if failed else 0)
+
+
+def start_bench(root: Path, out: Path, *argv: str):
+    """``python -m hil run ... --out OUT --json`` started; (the process, the hub's URL once it
+    has printed it). The caller waits for it (``communicate``) and kills it if it must."""
+    import re
+    import subprocess
+    import sys
+    import time
+
+    run = subprocess.Popen([sys.executable, "-m", "hil", "run", *argv, "--out", str(out),
+                            "--json"], cwd=root, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    url = None
+    deadline = time.monotonic() + 300
+    while url is None and time.monotonic() < deadline:
+        line = run.stderr.readline()
+        m = re.search(r"ws://127\.0\.0\.1:\d+/", line)
+        url = m.group(0) if m else None
+        assert line or run.poll() is None, "hil run ended before its bus came up"
+    return run, url

@@ -3,7 +3,6 @@ node between its control ticks, and the udsoncan tester (python -m hil diag) aga
 bench over the hub."""
 
 import json
-import re
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from hil.nodes import ID
 from hil.nodes.sil import ecu_params
 from hil.transport import secoc
 from hil.transport.codec import Codec
+from tests.procutil import start_bench
 
 ROOT = Path(__file__).resolve().parents[1]
 P = ecu_params(default_vehicle(), "comfort")
@@ -124,20 +124,12 @@ def _diag(url, secret, *extra):
 
 
 @pytest.mark.hil
+@pytest.mark.xdist_group("hub_bench")       # (two benches at once overload 2 cores)
 def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
     out = tmp_path / "run"
-    run = subprocess.Popen([sys.executable, "-m", "hil", "run", "--route", "full_road_section",
-                            "--mode", "comfort", "--seed", "2", "--duration", "25", "--out",
-                            str(out), "--json"], cwd=ROOT, stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
+    run, url = start_bench(ROOT, out, "--route", "full_road_section", "--mode", "comfort",
+                           "--seed", "2", "--duration", "25")
     try:
-        url = None
-        deadline = time.monotonic() + 300
-        while url is None and time.monotonic() < deadline:
-            line = run.stderr.readline()
-            m = re.search(r"ws://127\.0\.0\.1:\d+/", line)
-            url = m.group(0) if m else None
-            assert line or run.poll() is None, "hil run ended before its bus came up"
         secret = out / "hub.secret"
         assert secret.stat().st_mode & 0o777 == 0o600
         while run.poll() is None and not (out / "plant.log").exists():

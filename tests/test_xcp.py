@@ -8,6 +8,7 @@ import logging
 import struct
 import threading
 import time
+from pathlib import Path
 
 import can
 import numpy as np
@@ -22,6 +23,7 @@ from hil.transport.codec import Codec
 from hil.xcp import protocol as px
 from hil.xcp.port import xcp_secret
 from hil.xcp.slave import key_of
+from tests.procutil import start_bench
 
 pyxcp = pytest.importorskip("pyxcp")
 from pyxcp.config import create_application_from_config  # noqa: E402
@@ -29,6 +31,7 @@ from pyxcp.daq_stim import DaqList, DaqOnlinePolicy  # noqa: E402
 from pyxcp.master import Master  # noqa: E402
 from pyxcp.types import XcpResponseError  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[1]
 CODEC = Codec()
 KEY = bytes(range(16))
 CMD, RES = CODEC.message("XCP_CMD").frame_id, CODEC.message("XCP_RES").frame_id
@@ -211,13 +214,14 @@ class Collect(DaqOnlinePolicy):
 
 def _list(event: int, prescaler: int, names) -> DaqList:
     kinds = {"i4": "I32", "u1": "U8"}
+    time.sleep(0.05)                                     # (the node has ticked)
     ms = [(n, IMAGE.objects[n].address, 0, kinds[IMAGE.objects[n].dtype]) for n in names]
     return DaqList(name="l", event_num=event, stim=False, enable_timestamps=True,
                    measurements=ms, priority=0, prescaler=prescaler)
 
 
 def test_daq_samples_every_tenth_tick_and_loses_none(bench, request):
-    names = ("out.faults", "out.active_mode", "out.enable")
+    names = ("in.tick", "out.faults", "out.active_mode", "out.enable")
     pol = Collect([_list(1, 1, names)])
     with master(request.node.name, policy=pol) as x:
         unlocked(x)
@@ -228,13 +232,15 @@ def test_daq_samples_every_tenth_tick_and_loses_none(bench, request):
         x.disconnect()
     rows = pol.rows
     assert len(rows) > 10
-    ticks = [t1 // 1_000_000 for _, t1, _ in rows]        # (the ECU's time: tick x 1 ms)
-    assert all(t % 10 == 0 for t in ticks)
-    assert ticks == list(range(ticks[0], ticks[-1] + 1, 10))          # no sample lost
-    trace = bench.node.trace()
     heads = [h[0] for h in pol.daq_lists[0].headers]
-    for (_, t1, payload), tick in zip(rows, ticks):
-        got = dict(zip(heads, payload))
+    got_rows = [dict(zip(heads, payload)) for _, _, payload in rows]
+    ticks = [g["in.tick"] for g in got_rows]
+    assert all(t % 10 == 0 for t in ticks) and ticks[0] > 0
+    assert ticks == list(range(ticks[0], ticks[-1] + 1, 10))          # no sample lost
+    # (pyxcp hands the DTO timestamps over relative to the first: 1 ms per tick)
+    assert [t1 for _, t1, _ in rows] == [(t - ticks[0]) * 1_000_000 for t in ticks]
+    trace = bench.node.trace()
+    for got, tick in zip(got_rows, ticks):
         assert got["out.faults"] == trace["faults"][tick]
         assert got["out.active_mode"] == trace["mode"][tick]
         assert got["out.enable"] == trace["enable"][tick]
@@ -274,3 +280,123 @@ def test_the_a2l_promises_only_commands_the_slave_answers():
 
     assert {getattr(px, name) for name in OPTIONAL_CMDS} <= set(_HANDLERS)
     assert len(OPTIONAL_CMDS) == len(set(OPTIONAL_CMDS))
+
+
+# -- python -m hil xcp against a running bench over the hub -------------------------------------
+
+def _xcp(url, out, *argv):
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "hil", "xcp", *argv, "-i", "remote", "-c", url,
+                        "--secret-file", str(out / "hub.secret"), "--key-file",
+                        str(out / "secoc.key"), "--json"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    return p
+
+
+@pytest.mark.hil
+@pytest.mark.xdist_group("hub_bench")       # (two benches at once overload 2 cores)
+def test_the_xcp_tool_measures_and_is_refused_on_a_running_bench(tmp_path):
+    """On the hub, during a lockstep run: a DAQ on the 1 ms event within the bus budget for
+    20 s of the ECU's time loses no sample and equals the run's own trace at its ticks; a
+    10 ms DAQ of the estimates likewise; an over-budget DAQ and a write outside the limits
+    are refused with their XCP errors; the run's verdict holds."""
+    import json
+    from asammdf import MDF
+
+    out = tmp_path / "run"
+    run, url = start_bench(ROOT, out, "--route", "full_road_section", "--mode", "auto",
+                           "--seed", "2")
+    try:
+        fast = _xcp(url, out, "measure", "out.enable", "out.regen", "--event", "1ms",
+                    "--prescaler", "4", "--seconds", "20", "--out", str(tmp_path / "f.mf4"))
+        slow = _xcp(url, out, "measure", "out.force_cmd_n", "out.road_est_um",
+                    "out.active_mode", "--event", "10ms", "--seconds", "20", "--out",
+                    str(tmp_path / "s.mf4"))
+        over = _xcp(url, out, "measure", "out.enable", "--event", "1ms", "--seconds", "1",
+                    "--out", str(tmp_path / "o.mf4"))
+        bad = _xcp(url, out, "set", "cal.control.k_safety[2]", "1e9")
+        stdout, stderr = run.communicate(timeout=900)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()
+    assert run.returncode == 0, stderr[-2000:]
+    assert json.loads(stdout)["verdict"] == "pass"
+    assert over.returncode == 1 and "ERR_DAQ_CONFIG" in over.stderr, over.stderr
+    assert bad.returncode == 1 and "ERR_OUT_OF_RANGE" in bad.stderr, bad.stderr
+    trace = np.load(out / "ecu.npz")
+    for p, step, checks in ((fast, 4, {"out.enable": trace["enable"].astype(float)}),
+                            (slow, 10, {"out.force_cmd_n": trace["force_cmd"],
+                                        "out.road_est_um": trace["road_est"],
+                                        "out.active_mode": trace["mode"].astype(float)})):
+        assert p.returncode == 0, p.stderr
+        doc = json.loads(p.stdout)
+        assert doc["lost"] == 0 and doc["samples"] == 20_000 // step
+        with MDF(doc["out"]) as mdf:
+            for name, want in checks.items():
+                sig = mdf.get(name)
+                ticks = np.round(sig.timestamps * 1000).astype(int)
+                assert np.all(np.diff(ticks) == step)
+                np.testing.assert_array_equal(sig.samples, want[ticks], err_msg=name)
+
+
+def _cto(node, data: bytes) -> bytes:
+    """One CTO into the node between ticks; its (single) answer."""
+    (fid, res), = node.on_frame(CMD, data)
+    assert fid == RES
+    return res
+
+
+def _write_between_ticks(node, name: str, values) -> None:
+    """CONNECT, unlock calibration, DOWNLOAD (master block mode) ``values`` into ``name``."""
+    o = IMAGE.objects[name]
+    _cto(node, b"\xff\x00")
+    seed = _cto(node, bytes([px.GET_SEED, 0, px.RES_CAL_PAG]))[2:8]
+    assert _cto(node, bytes([px.UNLOCK, 6]) + key_of(xcp_secret(KEY), seed))[0] == px.RES
+    _cto(node, bytes([px.SET_MTA, 0, 0, 0]) + struct.pack("<I", o.address))
+    data = np.asarray(values, dtype=o.dtype).tobytes()
+    assert node.on_frame(CMD, bytes([px.DOWNLOAD, len(data)]) + data[:6]) == []
+    rest = data[6:]
+    while rest:
+        part, rest = rest[:6], rest[6:]
+        out = node.on_frame(CMD, bytes([px.DOWNLOAD_NEXT, len(part) + len(rest)]) + part)
+    assert out[0][1][0] == px.RES, out
+    _cto(node, bytes([px.DISCONNECT]))
+
+
+def _lockstep(writes: dict):
+    """A lockstep run in this process (the nodes frame by frame), 3 s of the full road section
+    in auto mode; ``writes``: tick -> (name, values), each written between that tick and
+    the one before. Returns the ECU's trace hash and its calibration log."""
+    from hil.nodes import PlantNode, run_in_process
+    from hil.nodes.sil import app_node
+
+    from hil.sim.road import load_route
+
+    cfg = default_vehicle()
+    route = load_route("full_road_section")
+    p = ecu_params(cfg, "auto")
+    plant = PlantNode(cfg, route, 1, CODEC, key=KEY)
+    plant.n = 3000
+    ecu = EcuNode(p, CODEC, lockstep=True, key=KEY)
+    app = app_node(CODEC, "auto", p.dt_s, "auto", None, key=KEY)
+    for tick in sorted(writes):
+        run_in_process(plant, ecu, app, until=tick)
+        _write_between_ticks(ecu, *writes[tick])
+    run_in_process(plant, ecu, app)
+    return ecu.summary()["trace_sha256"], ecu.xcp.log if ecu.xcp else []
+
+
+def test_the_same_writes_at_the_same_ticks_give_the_same_bytes():
+    """Lockstep: a calibration written between the same two ticks twice gives the same trace;
+    written a tick later, or not at all, another (so the check can fail). (The energy mode's
+    damping: the ECU runs energy feedback from tick 2500 of this drive.)"""
+    k = [P.control.regen_c * 1.5]
+    a, log_a = _lockstep({2600: ("cal.control.regen_c", k)})
+    b, log_b = _lockstep({2600: ("cal.control.regen_c", k)})
+    c, _ = _lockstep({2601: ("cal.control.regen_c", k)})
+    d, _ = _lockstep({})
+    assert a == b and len({a, c, d}) == 3
+    assert log_a == log_b and [e["tick"] for e in log_a] == [2600]

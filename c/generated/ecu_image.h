@@ -6,7 +6,7 @@
 
 #include <stdint.h>
 
-#define ECU_IMAGE_EPK "SUSP_ECU_405d59258e6d9e377edd8d0"
+#define ECU_IMAGE_EPK "SUSP_ECU_70a196afb3334cc34b5f748"
 #define ECU_IMAGE_EPK_LEN 32
 #define ECU_IMAGE_IDENT_ADDR 0x100u
 #define ECU_IMAGE_IDENT_SIZE 32u
@@ -17,7 +17,7 @@
 #define ECU_IMAGE_STATE_ADDR 0x20000000u
 #define ECU_IMAGE_STATE_SIZE 9963u
 #define ECU_IMAGE_INPUTS_ADDR 0x20002700u
-#define ECU_IMAGE_INPUTS_SIZE 88u
+#define ECU_IMAGE_INPUTS_SIZE 44u
 #define ECU_IMAGE_OUTPUTS_ADDR 0x20002800u
 #define ECU_IMAGE_OUTPUTS_SIZE 59u
 
@@ -854,13 +854,13 @@ typedef struct __attribute__((packed)) {
     double resid_f[3];
 } ecu_state_t;
 typedef struct __attribute__((packed)) {
-    int64_t tick;
-    int64_t counts[5];
-    int64_t supply;
-    int64_t req_kind;
-    int64_t req_mode;
-    int64_t req_counter;
-    int64_t link_faults;
+    int32_t tick;
+    int32_t counts[5];
+    int32_t supply;
+    int32_t req_kind;
+    int32_t req_mode;
+    int32_t req_counter;
+    int32_t link_faults;
 } ecu_inputs_t;
 typedef struct __attribute__((packed)) {
     int32_t duty_q15;
@@ -893,7 +893,7 @@ extern const char ecu_epk[32];
 _Static_assert(sizeof(ecu_cal_t) == 11020u, "CAL size");
 _Static_assert(sizeof(ecu_fx_t) == 12145u, "FX size");
 _Static_assert(sizeof(ecu_state_t) == 9963u, "STATE size");
-_Static_assert(sizeof(ecu_inputs_t) == 88u, "INPUTS size");
+_Static_assert(sizeof(ecu_inputs_t) == 44u, "INPUTS size");
 _Static_assert(sizeof(ecu_outputs_t) == 59u, "OUTPUTS size");
 
 #endif /* ECU_IMAGE_H */

@@ -251,7 +251,7 @@ def add_parser(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
-def open_tester_bus(interface, channel, secret_file):
+def open_tester_bus(interface, channel, secret_file, response_id: int = RESPONSE_ID):
     from hil.transport.bus import BusError, resolve
     from hil.cli import fail
     from hil.config import ConfigError
@@ -273,15 +273,15 @@ def open_tester_bus(interface, channel, secret_file):
         except ConfigError as exc:
             fail(f"--secret-file: {exc}")
     try:
-        return tester_bus(spec, secret)
+        return tester_bus(spec, secret, response_id)
     except BusError as exc:
         fail(str(exc))
 
 
-def tester_bus(spec, secret: Optional[bytes] = None):
-    """The tester's bus: DIAG_RESPONSE only, authenticated as TESTER (on a hub, with the
-    run's secret)."""
-    return spec.open(can_filters=[{"can_id": RESPONSE_ID, "can_mask": 0x7FF,
+def tester_bus(spec, secret: Optional[bytes] = None, response_id: int = RESPONSE_ID):
+    """The tester's bus: its responses only (DIAG_RESPONSE; XCP_RES for the XCP tool),
+    authenticated as TESTER (on a hub, with the run's secret)."""
+    return spec.open(can_filters=[{"can_id": response_id, "can_mask": 0x7FF,
                                    "extended": False}], node="TESTER", secret=secret)
 
 

@@ -245,11 +245,13 @@ HUB_SECRET_FILE = "hub.secret"
 
 
 def _count_tester(args: RunSpec, logger) -> None:
-    """A tester's DIAG_REQUEST frames are on the bus but no node sent them: the bus check
-    counts them as an outside sender's (on a hub only an authenticated TESTER can send them)."""
-    n = logger.log.by_id.get(ID["DIAG_REQUEST"], 0)
-    if n:
-        args.outside_frames = {**args.outside_frames, "DIAG_REQUEST": n}
+    """A tester's DIAG_REQUEST and XCP_CMD frames are on the bus but no node sent them: the
+    bus check counts them as an outside sender's (on a hub only an authenticated TESTER can
+    send them)."""
+    for name in ("DIAG_REQUEST", "XCP_CMD"):
+        n = logger.log.by_id.get(ID[name], 0)
+        if n:
+            args.outside_frames = {**args.outside_frames, name: n}
 
 
 def _key_file(args: RunSpec, out: Path) -> Path:
