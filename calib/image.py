@@ -207,9 +207,8 @@ def _leaves(dt: np.dtype, path=(), off=0):
         if f.names:
             yield from _leaves(f, path + (n,), off + o)
         elif f.subdtype is not None and f.subdtype[0].names:
-            base, shape = f.subdtype
-            for sub in base.names:      # (not in these records: tables are struct-of-arrays)
-                raise TypeError(f"{'.'.join(path + (n, sub))}: array of records")
+            # (not in these records: their tables are structs of arrays)
+            raise TypeError(f"{'.'.join(path + (n,))}: an array of records")
         else:
             base, shape = (f.subdtype if f.subdtype is not None else (f, ()))
             yield path + (n,), off + o, base.str.lstrip("<|"), tuple(shape)

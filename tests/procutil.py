@@ -2,6 +2,7 @@
 procps needed); a realtime run's verdict where only its timing may fail; a bench started
 with its hub's URL."""
 
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -39,9 +40,11 @@ def assert_only_timing_failed(returncode: int, rep: dict, timing=REALTIME_TIMING
     assert returncode == (1 if failed else 0)
 
 
-def start_bench(root: Path, out: Path, *argv: str):
-    """``python -m hil run ... --out OUT --json`` started; (the process, the hub's URL once it
-    has printed it). The caller waits for it (``communicate``) and kills it if it must."""
+@contextmanager
+def bench_run(root: Path, out: Path, *argv: str):
+    """``python -m hil run ... --out OUT --json`` started: (the process, the hub's URL once it
+    has printed it). The body waits for it (``communicate``); a run still going when the body
+    leaves (an assertion failed) is killed."""
     import re
     import subprocess
     import sys
@@ -50,11 +53,16 @@ def start_bench(root: Path, out: Path, *argv: str):
     run = subprocess.Popen([sys.executable, "-m", "hil", "run", *argv, "--out", str(out),
                             "--json"], cwd=root, stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
-    url = None
-    deadline = time.monotonic() + 300
-    while url is None and time.monotonic() < deadline:
-        line = run.stderr.readline()
-        m = re.search(r"ws://127\.0\.0\.1:\d+/", line)
-        url = m.group(0) if m else None
-        assert line or run.poll() is None, "hil run ended before its bus came up"
-    return run, url
+    try:
+        url = None
+        deadline = time.monotonic() + 300
+        while url is None and time.monotonic() < deadline:
+            line = run.stderr.readline()
+            m = re.search(r"ws://127\.0\.0\.1:\d+/", line)
+            url = m.group(0) if m else None
+            assert line or run.poll() is None, "hil run ended before its bus came up"
+        yield run, url
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()

@@ -20,7 +20,7 @@ from hil.nodes import ID
 from hil.nodes.sil import ecu_params
 from hil.transport import secoc
 from hil.transport.codec import Codec
-from tests.procutil import start_bench
+from tests.procutil import bench_run
 
 ROOT = Path(__file__).resolve().parents[1]
 P = ecu_params(default_vehicle(), "comfort")
@@ -127,9 +127,8 @@ def _diag(url, secret, *extra):
 @pytest.mark.xdist_group("hub_bench")       # (two benches at once overload 2 cores)
 def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
     out = tmp_path / "run"
-    run, url = start_bench(ROOT, out, "--route", "full_road_section", "--mode", "comfort",
-                           "--seed", "2", "--duration", "25")
-    try:
+    with bench_run(ROOT, out, "--route", "full_road_section", "--mode", "comfort",
+                   "--seed", "2", "--duration", "25") as (run, url):
         secret = out / "hub.secret"
         assert secret.stat().st_mode & 0o777 == 0o600
         while run.poll() is None and not (out / "plant.log").exists():
@@ -156,10 +155,6 @@ def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
         p = _diag(url, secret, "--clear")
         assert p.returncode == 0 and json.loads(p.stdout)["cleared"]
         stdout, stderr = run.communicate(timeout=600)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait()
     assert run.returncode == 0, stderr[-2000:]
     rep = json.loads(stdout)
     assert rep["verdict"] == "pass"

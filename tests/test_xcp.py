@@ -23,7 +23,7 @@ from hil.transport.codec import Codec
 from hil.xcp import protocol as px
 from hil.xcp.port import xcp_secret
 from hil.xcp.slave import key_of
-from tests.procutil import start_bench
+from tests.procutil import bench_run
 
 pyxcp = pytest.importorskip("pyxcp")
 from pyxcp.config import create_application_from_config  # noqa: E402
@@ -306,9 +306,8 @@ def test_the_xcp_tool_measures_and_is_refused_on_a_running_bench(tmp_path):
     from asammdf import MDF
 
     out = tmp_path / "run"
-    run, url = start_bench(ROOT, out, "--route", "full_road_section", "--mode", "auto",
-                           "--seed", "2")
-    try:
+    with bench_run(ROOT, out, "--route", "full_road_section", "--mode", "auto",
+                   "--seed", "2") as (run, url):
         fast = _xcp(url, out, "measure", "out.enable", "out.regen", "--event", "1ms",
                     "--prescaler", "4", "--seconds", "20", "--out", str(tmp_path / "f.mf4"))
         slow = _xcp(url, out, "measure", "out.force_cmd_n", "out.road_est_um",
@@ -318,10 +317,6 @@ def test_the_xcp_tool_measures_and_is_refused_on_a_running_bench(tmp_path):
                     "--out", str(tmp_path / "o.mf4"))
         bad = _xcp(url, out, "set", "cal.control.k_safety[2]", "1e9")
         stdout, stderr = run.communicate(timeout=900)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait()
     assert run.returncode == 0, stderr[-2000:]
     assert json.loads(stdout)["verdict"] == "pass"
     assert over.returncode == 1 and "ERR_DAQ_CONFIG" in over.stderr, over.stderr

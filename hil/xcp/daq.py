@@ -22,7 +22,6 @@ TIMESTAMP_SIZE = 4
 MAX_PID = 0xFB                  # 0xFC..0xFF are SERV, EV, ERR, RES
 MAX_ENTRIES = 7                 # per ODT (one byte each at least)
 MODE_DIRECTION_STIM, MODE_TIMESTAMP, MODE_PID_OFF = 0x02, 0x10, 0x20
-MODE_SELECTED, MODE_RUNNING = 0x01, 0x40
 
 
 @dataclass
@@ -185,9 +184,6 @@ class Daq:
                     d.running = d.selected = False
         else:
             raise XcpError(ERR_MODE_NOT_VALID, f"START_STOP_SYNCH mode {mode}")
-
-    def list_mode(self, d: DaqList) -> int:
-        return d.mode | (MODE_SELECTED if d.selected else 0) | (MODE_RUNNING if d.running else 0)
 
     def sample(self, tick: int) -> list[bytes]:
         """The DTOs of the events at the end of ``tick`` (event 1: every tenth tick)."""

@@ -31,10 +31,11 @@ REFERENCE, WORKING = 0, 1
 
 @dataclasses.dataclass
 class Change:
-    """An accepted write: the new parameters and the objects it changed (old, new values)."""
+    """An accepted write: the new parameters, their record, and the objects it changed (old,
+    new values)."""
 
     params: EcuParams
-    record: np.ndarray                  # params_record(params)
+    record: np.ndarray                  # params_record(params): the working page now
     objects: dict                       # name -> (old, new): lists of numbers
 
 
@@ -67,18 +68,18 @@ def value_of(obj, path: tuple):
 
 class Memory:
     """``records()`` gives the live ``{"T", "S", "I", "O"}`` arrays (the ECU may make new
-    ones: a reset makes a new state); the CAL pages are kept here."""
+    ones: a reset makes a new state); the CAL pages are kept here: the reference as built
+    (``image.P``), the working page as its parameters and their record."""
 
     def __init__(self, image: Image, records: Callable[[], dict]):
         self.image, self.records = image, records
-        self.reference = image.P.tobytes()
-        self.params = image.params                  # the working page's parameters
-        self.working = bytearray(self.reference)
+        self.params, self.working = image.params, image.P
         self.text = bytearray()
         self.texts: dict[str, int] = {}
-        self.pending: Optional[tuple[int, bytearray]] = None    # (address, bytes) of a
+        # (address, bytes) of an element a transfer began and did not finish
+        self.pending: Optional[tuple[int, bytearray]] = None
         self._cal = sorted((o for o in image.objects.values() if o.segment == "CAL"),
-                           key=lambda o: o.address)             # split element
+                           key=lambda o: o.address)
         self._epk = image.epk.encode().ljust(image.segment("IDENT").size, b"\0")
 
     def text_address(self, text: str) -> int:
@@ -97,27 +98,23 @@ class Memory:
     def read(self, address: int, size: int, page: int) -> bytes:
         if TEXT_BASE <= address and address + size <= TEXT_BASE + len(self.text):
             return bytes(self.text[address - TEXT_BASE:address - TEXT_BASE + size])
-        seg = self._segment(address, size)
-        off = address - seg.base
-        if seg.record == "EPK":
-            return self._epk[off:off + size]
-        if seg.record == "P":
-            src = self.reference if page == REFERENCE else self.working
-            return bytes(src[off:off + size])
-        rec = self.records()[seg.record]
-        return rec.view(np.uint8)[off:off + size].tobytes()
+        record, offset = self.readable(address, size)
+        return self.sample(record, offset, size, page)
 
     def readable(self, address: int, size: int) -> tuple[str, int]:
         """(record, offset) of a readable range (a DAQ entry), or XcpError."""
         seg = self._segment(address, size)
         return seg.record, address - seg.base
 
-    def sample(self, record: str, offset: int, size: int) -> bytes:
-        if record == "P":
-            return bytes(self.working[offset:offset + size])
+    def sample(self, record: str, offset: int, size: int, page: int = WORKING) -> bytes:
+        """``size`` bytes at ``offset`` of ``record`` (CAL: of ``page``)."""
         if record == "EPK":
             return self._epk[offset:offset + size]
-        return self.records()[record].view(np.uint8)[offset:offset + size].tobytes()
+        if record == "P":
+            rec = self.image.P if page == REFERENCE else self.working
+        else:
+            rec = self.records()[record]
+        return rec.view(np.uint8)[offset:offset + size].tobytes()
 
     # ---------------------------------------------------------------- writing
     def write(self, address: int, data: bytes, page: int) -> Optional[Change]:
@@ -164,7 +161,7 @@ class Memory:
 
     def _apply(self, start: int, data: bytes, objs: list[Obj]) -> Change:
         base = self.image.segment("CAL").base
-        page = bytearray(self.working)
+        page = bytearray(self.working.tobytes())
         page[start - base:start - base + len(data)] = data
         p, changed = self.params, {}
         for o in objs:
@@ -182,13 +179,8 @@ class Memory:
             old = np.ravel(np.asarray(value_of(p, o.path), dtype=float)).tolist()
             p = replace_path(p, o.path, new.reshape(o.shape) if o.shape else new[0])
             changed[o.name] = (old, new.astype(float).tolist())
-        rec = params_record(p)
-        self.params, self.working = p, bytearray(rec.tobytes())
-        return Change(p, rec, changed)
-
-    def restore(self, params: EcuParams) -> None:
-        """The working page set to ``params`` (a design file read back, a reset page)."""
-        self.params, self.working = params, bytearray(params_record(params).tobytes())
+        self.params, self.working = p, params_record(p)
+        return Change(p, self.working, changed)
 
     def page_valid(self, page: int) -> None:
         if page not in (REFERENCE, WORKING):

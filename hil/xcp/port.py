@@ -53,9 +53,9 @@ class XcpPort:
             self.log.append({"tick": self.ecu.tick + 1, "objects": ch.objects})
         if changes or self.slave.page_change:
             self.slave.page_change = False
+            m = self.memory
             ref = self.slave.ecu_page == REFERENCE
-            p = self.image.params if ref else self.memory.params
-            self._use(p, self.image.P if ref else params_record(p))
+            self._use(*((self.image.params, self.image.P) if ref else (m.params, m.working)))
 
     def _use(self, p, P) -> None:
         e = self.ecu
