@@ -13,7 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 import numpy as np
 
-from calib import cache
+from calib import cache, calpage
 from calib.control_design import (_feedback_designs, comprehensive_gain, damping_scale,
                                    default_gains_path)
 from calib.errors import ConfigError
@@ -110,6 +110,9 @@ def build(cfg: VehicleConfig, opts: DesignOptions | None = None,
     design cache (``calib.cache``) under every input: the vehicle as parsed, the options, the
     gains file's bytes, the design code."""
     opts = opts or DesignOptions()
+    if opts.calibration:            # (the design as built, then the values set on it)
+        return calpage.apply(build(cfg, replace(opts, calibration=()), gains_file),
+                             opts.calibration)
     gains = Path(gains_file or default_gains_path(cfg))
     parts = (repr(cfg).encode(), json.dumps(dataclasses.asdict(opts), sort_keys=True).encode(),
              str(gains_file is not None).encode(),

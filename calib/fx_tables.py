@@ -6,6 +6,7 @@ tanh table. Design-time: the firmware receives the finished tables (and C the sa
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 
 import numpy as np
@@ -74,6 +75,37 @@ def build_tables(p: EcuParams) -> FxTables:
     """The fixed-point path's constants for calibration ``p`` (kept in the design cache,
     ``calib.cache``, under the calibration's pickled bytes and the design code)."""
     return cache.cached("fx_tables", (pickle.dumps(p, protocol=5),), lambda: _build_tables(p))
+
+
+_FORMATS = ("k_frac", "f_kp", "f_ki", "f_kd")
+
+
+def pinned(T: FxTables, ref: FxTables) -> FxTables:
+    """``T`` (the tables of a calibration written over XCP) in the formats of ``ref`` (those
+    of the ECU as built, which its A2L states): every constant at ``ref``'s fractional bits,
+    ``ref``'s gain formats. A ValueError names the first constant that does not fit its
+    format (it would need fewer fractional bits than the ECU was built with)."""
+    def pin(name, new, old):
+        if isinstance(new, Fx):
+            if new.frac < old.frac:
+                raise ValueError(f"{name} = {new.value:g} does not fit its fixed-point format "
+                                 f"(Q{old.frac}; it needs Q{new.frac})")
+            return fx_at(new.value, old.frac)
+        return tuple(pin(f"{name}[{i}]", n, o) for i, (n, o) in enumerate(zip(new, old)))
+
+    changes = {}
+    for f in dataclasses.fields(FxTables):
+        new, old = getattr(T, f.name), getattr(ref, f.name)
+        if f.name in _FORMATS:
+            for i, (n, o) in enumerate(zip(np.ravel(new), np.ravel(old))):
+                if n < o:
+                    raise ValueError(f"{f.name}[{i}]: the new calibration needs Q{n}, the "
+                                     f"ECU was built with Q{o}")
+            changes[f.name] = old
+        elif isinstance(new, Fx) or (isinstance(new, tuple) and new
+                                     and isinstance(new[0], Fx)):
+            changes[f.name] = pin(f.name, new, old)
+    return dataclasses.replace(T, **changes)
 
 
 def _build_tables(p: EcuParams) -> FxTables:

@@ -14,9 +14,9 @@ A record is packed (numpy's default: no padding, little-endian), as the packed C
 ``calib.image_c`` are. An object is a field (or, where a fixed-point array's elements have
 different formats, one element) with its address, type, conversion, unit and limits.
 
-What may be written: only the fields of ``WRITABLE``, within their limits (which follow from
-the design's own value: a gain to 4x its magnitude, a rate within [0, 1], a safety threshold
-only towards earlier entry, a limit only down). Every other calibration field is read-only:
+What may be written: only the fields of ``calib.calpage.WRITABLE``, within their limits
+(which follow from the design's own value: a gain to 4x its magnitude, a rate within [0, 1],
+a safety threshold only towards earlier entry, a limit only down). Every other calibration field is read-only:
 the discretised model and what is derived from it (Phi, Gamma, H, ..., the FDI bank), the
 ADC and plant constants, the fault detection and the safety relevance of each fault. The FX
 tables are re-derived from CAL whenever CAL changes, so a write counts in both paths.
@@ -30,6 +30,7 @@ from typing import Optional
 
 import numpy as np
 
+from calib.calpage import WRITABLE, limits
 from calib.fx_tables import build_tables
 from firmware.ecu import inputs, outputs, state_dtype
 from firmware.fx import tables as fxt
@@ -84,89 +85,6 @@ class Obj:
     def characteristic(self) -> bool:
         return self.segment in ("CAL", "FX")
 
-
-def _sym(v: float) -> tuple[float, float]:
-    return -v, v
-
-
-# The writable calibration: path -> (limits from the design value v (an array), unit, text).
-# ``mag`` is the largest magnitude of the design value (1 where it is 0).
-def _gain(v, mag):
-    return _sym(4.0 * mag)
-
-
-def _up4(v, mag):
-    return 0.0, 4.0 * mag
-
-
-def _unit_rate(v, mag):
-    return 0.0, 1.0
-
-
-def _around(v, mag):
-    return 0.25 * float(np.min(v)), 4.0 * float(np.max(v))
-
-
-def _only_down(v, mag):           # a limit: never above the design's
-    return 0.0, float(np.max(v))
-
-
-def _earlier(v, mag):             # a safety threshold: only towards earlier entry
-    return 0.25 * float(np.min(v)), float(np.max(v))
-
-
-def _longer(v, mag):              # a safety hold: only longer
-    return float(np.min(v)), 4.0 * float(np.max(v))
-
-
-def _forget(v, mag):
-    return min(0.9, float(np.min(v))), 1.0
-
-
-WRITABLE = {
-    "control.k_safety": (_gain, "N/SI", "safety LQR gain row over [zs', zt', zs, zt, zf]"),
-    "control.k_comprehensive": (_gain, "N/SI", "GA-LQR gain row over [zs', zt', zs, zt, zf]"),
-    "control.k_comfort": (_gain, "N/SI", "comfort LQR gain row over [zs', zt', zs, zt, zf]"),
-    "control.skyhook_c": (_up4, "N.s/m", "skyhook damping"),
-    "control.skyhook_passive_c": (_up4, "N.s/m", "passive-mode skyhook damping"),
-    "control.pid_kp": (_up4, "N.s^2/m", "PID proportional gain (on body acceleration)"),
-    "control.pid_ki": (_up4, "N.s/m", "PID integral gain"),
-    "control.pid_kd": (_up4, "N.s^3/m", "PID derivative gain"),
-    "control.pid_leak": (_unit_rate, "", "PID integrator leak"),
-    "control.bp_w_hidden": (_gain, "", "BP-PID initial hidden weights"),
-    "control.bp_b_hidden": (_gain, "", "BP-PID initial hidden biases"),
-    "control.bp_w_out": (_gain, "", "BP-PID initial output weights"),
-    "control.bp_b_out": (_gain, "", "BP-PID initial output biases"),
-    "control.bp_eta": (_unit_rate, "", "BP-PID learning rate"),
-    "control.bp_alpha": (_unit_rate, "", "BP-PID momentum"),
-    "control.bp_scale": (_up4, "", "BP-PID gain scales [kp, ki, kd]"),
-    "control.bp_input_scale": (_around, "m/s^2", "BP-PID input scale"),
-    "control.bp_gain_alpha": (_unit_rate, "", "BP-PID gain smoothing"),
-    "control.regen_c": (_up4, "N.s/m", "regeneration damping"),
-    "control.regen_skyhook_c": (_up4, "N.s/m", "regeneration skyhook damping"),
-    "control.regen_min_voltage_ratio": (_unit_rate, "", "regeneration's minimum EMF ratio"),
-    "control.force_limit": (_only_down, "N", "actuator force limit"),
-    "actuator.ki": (_up4, "V/(A.s)", "current loop integral gain"),
-    "actuator.current_limit": (_only_down, "A", "current limit"),
-    "grade.hysteresis": (_up4, "grade", "grade hysteresis (log4 of Gq)"),
-    "grade.dwell_ticks": (_around, "tick", "grade dwell"),
-    "grade.min_speed": (_up4, "m/s", "grade estimation's minimum speed"),
-    "grade.dtd1": (_around, "m", "tyre deflection threshold (mode logic)"),
-    "grade.ba1": (_around, "m/s^2", "body acceleration lower threshold"),
-    "grade.ba2": (_around, "m/s^2", "body acceleration upper threshold"),
-    "modes.ramp_ticks": (_up4, "tick", "controller hand-over ramp"),
-    "modes.request_min_ticks": (_up4, "tick", "driver request's minimum spacing"),
-    "modes.safety_dtd_rms_limit": (_earlier, "m", "safety entry: tyre deflection RMS"),
-    "modes.safety_exit_ratio": (_earlier, "", "safety exit below limit x ratio"),
-    "modes.safety_hold_ticks": (_longer, "tick", "safety hold"),
-    "akf.forgetting": (_forget, "", "Sage-Husa forgetting factor"),
-    "akf.r_floor": (_around, "SI^2", "measurement noise floor [BA, SWS, WA]"),
-    "akf.road_intensity_per_mps": (_around, "m^2/s^2", "road input intensity per m/s"),
-    "akf.lift_force_sigma_n": (_around, "N", "force noise while a wheel lifts"),
-    "akf.current_force_sigma_n": (_around, "N", "force noise without a current"),
-    "akf.stroke_force_sigma_n": (_around, "N", "force noise at the bump stops"),
-    "akf_q_gq_nominal": (_around, "m^3", "nominal road intensity Gq"),
-}
 
 # measurement: path -> (unit, scaling, text); the outputs' integer scalings: an int is a
 # fixed-point format (its fractional bits), a float a decimal factor
@@ -227,7 +145,8 @@ class Image:
     def __init__(self, p: EcuParams):
         self.params = p
         self.P = params_record(p)
-        self.T = params_record(build_tables(p))
+        self.tables = build_tables(p)          # (their formats are the A2L's)
+        self.T = params_record(self.tables)
         self.S_dtype = state_dtype(p)
         self.I_dtype, self.O_dtype = inputs().dtype, outputs().dtype
         i_base = _align(RAM_BASE + self.S_dtype.itemsize)
@@ -267,9 +186,8 @@ class Image:
             v = np.asarray(field(self.P, path), dtype=float)
             rule = WRITABLE.get(name)
             if rule is not None:
-                fn, unit, text = rule
-                mag = float(np.max(np.abs(v))) or 1.0
-                lo, hi = fn(v, mag)
+                _, unit, text = rule
+                lo, hi = limits(name, v)
             else:
                 unit, text = "", "read-only"
                 lo, hi = float(np.min(v)), float(np.max(v))

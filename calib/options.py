@@ -179,15 +179,22 @@ class DesignOptions:
     # protected: either is a safety-relevant fault (the bridge opens)
     supply_low_ratio: float = 0.75
     supply_high_ratio: float = 1.125
+    # values set on the built calibration, as XCP writes set them: ((name, values), ...), the
+    # [calibration] table of a design file (calib.calpage; python -m hil xcp save writes one)
+    calibration: tuple = ()
 
 
 def load_options(path: str | Path, base: DesignOptions | None = None) -> DesignOptions:
-    """``base`` (default: the defaults) with the ``[design]`` table of a TOML file applied."""
+    """``base`` (default: the defaults) with the ``[design]`` table of a TOML file applied,
+    and its ``[calibration]`` table, if any (``calib.calpage``)."""
+    from calib import calpage
+
     path = Path(path)
     data = read_toml(path, "design")
-    unknown = set(data) - {"design"}
+    unknown = set(data) - {"design", "calibration"}
     if unknown:
-        raise ConfigError(f"{path}: unknown table or key '{sorted(unknown)[0]}' (only [design])")
+        raise ConfigError(f"{path}: unknown table or key '{sorted(unknown)[0]}' (only [design] "
+                          f"and [calibration])")
     table = data.get("design", {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: 'design' must be a table")
@@ -195,9 +202,11 @@ def load_options(path: str | Path, base: DesignOptions | None = None) -> DesignO
     fields = {f.name: f for f in dataclasses.fields(DesignOptions)}
     changes = {}
     for key, value in table.items():
-        if key not in fields:
+        if key not in fields or key == "calibration":
             raise ConfigError(f"{path}: unknown key 'design.{key}'")
         changes[key] = _checked(path, key, value, getattr(base, key))
+    if "calibration" in data:
+        changes["calibration"] = calpage.check_table(path, data["calibration"])
     return dataclasses.replace(base, **changes)
 
 

@@ -30,8 +30,8 @@ def add_vehicle_argument(parser: argparse.ArgumentParser) -> None:
 
 def add_design_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--design", metavar="FILE", default=None,
-                        help="design options TOML ([design] table; calib.options; default: "
-                             "the documented defaults)")
+                        help="design options TOML ([design] table, calib.options; [calibration] "
+                             "table, calib.calpage; default: the documented defaults)")
     add_cache_argument(parser)
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from calib.image import Image
+from calib.options import load_options
 from hil.apps.xcptool import push
 from hil.config import default_vehicle
 from hil.nodes import EcuNode
@@ -145,7 +146,7 @@ def test_a_gain_write_is_applied_whole_between_ticks_in_both_paths(bench, reques
         unlocked(x)
         k = _read(x, o.name)
         np.testing.assert_array_equal(k, P.control.k_safety)
-        new = k * 1.25
+        new = k * 0.8                                  # (1.25x: unstable, refused)
         push(x, o.address, new.tobytes())               # (DOWNLOAD + DOWNLOAD_NEXT: a block)
         np.testing.assert_array_equal(_read(x, o.name), new)
         deadline = time.monotonic() + 5
@@ -167,12 +168,42 @@ def test_a_gain_write_is_applied_whole_between_ticks_in_both_paths(bench, reques
         x.disconnect()
 
 
+def test_the_working_page_saved_as_a_design_file_reads_back(bench, request, tmp_path):
+    """python -m hil xcp save (its verb, over the virtual bus): the object written, and only
+    it, goes to the design file's [calibration] table; --design reads back the same values."""
+    import argparse
+
+    from calib.calpage import WRITABLE
+    from hil.apps.xcpcli import _save
+    from hil.apps.xcptool import A2l
+
+    tuned = np.asarray(P.control.k_safety) * 0.9
+    with master(request.node.name) as x:
+        unlocked(x)
+        push(x, IMAGE.objects["cal.control.k_safety"].address, tuned.tobytes())
+        x.disconnect()
+    f = tmp_path / "tuned.toml"
+    args = argparse.Namespace(file=str(f), design=None, timeout=2.0)
+    bus = can.Bus(interface="virtual", channel=request.node.name)
+    try:
+        doc = _save(args, KEY, A2l(), bus, [])
+    finally:
+        bus.shutdown()
+    assert doc["changed"] == ["control.k_safety"] and doc["objects"] == len(WRITABLE)
+    back = ecu_params(default_vehicle(), "auto", opts=load_options(f))
+    np.testing.assert_array_equal(back.control.k_safety, tuned)
+    assert back.control.regen_c == P.control.regen_c
+
+
 def test_refused_writes_leave_the_calibration_alone(bench, request):
     o = IMAGE.objects["cal.control.k_safety"]
     with master(request.node.name) as x:
         unlocked(x)
         k = _read(x, o.name)
-        for value, code in ((k * 5.0, px.ERR_OUT_OF_RANGE),
+        lo, hi = o.lower, o.upper
+        assert lo <= (k * 1.5).min() and (k * 1.5).max() <= hi   # (inside the A2L limits,
+        for value, code in ((k * 5.0, px.ERR_OUT_OF_RANGE),    # but its closed loop is not
+                            (k * 1.5, px.ERR_OUT_OF_RANGE),    # stable: refused)
                             (np.where(np.arange(5) == 2, np.nan, k), px.ERR_OUT_OF_RANGE)):
             with pytest.raises(XcpResponseError) as e:
                 push(x, o.address, value.tobytes())

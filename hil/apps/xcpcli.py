@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from calib.a2l import EVENTS
 from hil.apps import xcptool as xt
 
@@ -20,7 +22,8 @@ def add_parser(sub) -> None:
     for verb, text in (("info", "connect, check the EPK, unlock: the slave's facts"),
                        ("get", "read an object (physical values)"),
                        ("set", "write a calibration object (physical values)"),
-                       ("measure", "DAQ of measurements to an MF4 file")):
+                       ("measure", "DAQ of measurements to an MF4 file"),
+                       ("save", "the working page as a design file (--design reads it)")):
         v = verbs.add_parser(verb, help=text)
         add_bus_arguments(v)
         v.add_argument("--secret-file", metavar="FILE",
@@ -38,6 +41,11 @@ def add_parser(sub) -> None:
         if verb == "set":
             v.add_argument("value", metavar="VALUE", help="a number, or one per element, "
                                                           "comma-separated")
+        if verb == "save":
+            v.add_argument("file", metavar="FILE.toml")
+            v.add_argument("--design", metavar="BASE", default=None,
+                           help="the run's design file: its [design] table is kept and its "
+                                "[calibration] table is the base of the one written")
         if verb == "measure":
             v.add_argument("names", metavar="NAME", nargs="+")
             v.add_argument("--event", choices=sorted(EVENT_NAMES), default="10ms")
@@ -152,4 +160,50 @@ def _measure(args, key, a2l, bus, items) -> dict:
     return measure(args, key, a2l, bus, items, EVENT_NAMES[args.event])
 
 
-_VERBS = {"info": _info, "get": _get, "set": _set, "measure": _measure}
+def _save(args, key, a2l, bus, items) -> dict:
+    """Every writable CAL object whose working value differs from the reference page's, as
+    the ``[calibration]`` table of a design file (``calib.calpage``), written whole or not at
+    all (a temporary file renamed)."""
+    import os
+
+    from calib.calpage import design_text
+    from calib.errors import ConfigError
+    from calib.options import load_options
+    from hil.xcp.memory import REFERENCE, WORKING
+
+    if args.design is not None:                  # (a bad base: one line, before connecting)
+        try:
+            load_options(args.design)
+        except ConfigError as exc:
+            raise ValueError(f"--design: {exc}") from None
+
+    cal = [it for n, it in sorted(a2l.items.items()) if n.startswith("cal.") and it.writable]
+    raw = {}
+    with xt.connected(bus, key, timeout=args.timeout) as x:
+        xt.session(x, a2l)
+        for page in (REFERENCE, WORKING):
+            x.setCalPage(0x02, 0, page)             # (the master's view: XCP access)
+            for it in cal:
+                x.setMta(it.address)
+                raw[page, it.name] = bytes(x.upload(it.size)[:it.size])
+        x.disconnect()
+    changed = {}
+    for it in cal:
+        if raw[REFERENCE, it.name] != raw[WORKING, it.name]:
+            v = it.physical(raw[WORKING, it.name])
+            if np.dtype(it.dtype).kind in "iu" and it.factor == 1.0:
+                v = [int(e) for e in v]             # (an integer field stays whole)
+            changed[it.name[len("cal."):]] = v[0] if it.count == 1 else v
+    try:
+        text = design_text(changed, args.design, header=(
+            f"the working page of ECU {a2l.epk}, saved by python -m hil xcp save\n"
+            f"(what differs from its reference page; read back with --design)"))
+    except ConfigError as exc:
+        raise ValueError(f"--design: {exc}") from None
+    tmp = Path(args.file).with_name(Path(args.file).name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, args.file)
+    return {"file": args.file, "changed": sorted(changed), "objects": len(cal)}
+
+
+_VERBS = {"info": _info, "get": _get, "set": _set, "measure": _measure, "save": _save}

@@ -5,11 +5,13 @@ Reads: IDENT is the EPK; CAL is the page the master selected (0: the reference, 
 was built; 1: the working page); FX, STATE, INPUTS and OUTPUTS are the live records; a small
 text area (``TEXT_BASE``) holds what GET_ID and GET_DAQ_EVENT_INFO point the master at.
 
-Writes go to the working page only, and only to ``calib.image.WRITABLE`` objects, each
+Writes go to the working page only, and only to ``calib.calpage.WRITABLE`` objects, each
 element whole (a transfer may end inside an element: its bytes wait for the next transfer,
 which must continue at that address), every element written finite and inside its A2L
-limits. An accepted write gives new parameters (``EcuParams``, derived fields and the
-fixed-point tables made again from them): the ECU takes them between two ticks.
+limits, and a gain row only if its closed loop on the ECU's own model is stable
+(``calib.calpage.unstable``). An accepted write gives new parameters (``EcuParams``,
+derived fields and the fixed-point tables made again from them): the ECU takes them between
+two ticks.
 """
 
 from __future__ import annotations
@@ -19,7 +21,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from calib.calpage import replace_path, unstable, value_of
+from calib.fx_tables import build_tables, pinned
 from calib.image import Image, Obj
+from firmware.fx.tables import FxTables
 from firmware.layout import params_record
 from firmware.params import EcuParams
 from hil.xcp.protocol import (ERR_ACCESS_DENIED, ERR_OUT_OF_RANGE, ERR_PAGE_NOT_VALID,
@@ -37,33 +42,7 @@ class Change:
     params: EcuParams
     record: np.ndarray                  # params_record(params): the working page now
     objects: dict                       # name -> (old, new): lists of numbers
-
-
-def _like(current, value):
-    if isinstance(current, np.ndarray):
-        return np.array(value, dtype=current.dtype).reshape(current.shape)
-    if isinstance(current, bool):
-        return bool(value)
-    if isinstance(current, int):
-        return int(value)
-    if isinstance(current, float):
-        return float(value)
-    if isinstance(current, tuple):
-        return tuple(type(c)(v) for c, v in zip(current, np.ravel(value)))
-    raise TypeError(f"cannot set a {type(current).__name__}")
-
-
-def replace_path(obj, path: tuple, value):
-    """``obj`` (nested frozen dataclasses) with the field at ``path`` set to ``value``."""
-    head = getattr(obj, path[0])
-    new = _like(head, value) if len(path) == 1 else replace_path(head, path[1:], value)
-    return dataclasses.replace(obj, **{path[0]: new})
-
-
-def value_of(obj, path: tuple):
-    for p in path:
-        obj = getattr(obj, p)
-    return obj
+    tables: FxTables                    # the fixed-point tables, in the image's formats
 
 
 class Memory:
@@ -73,7 +52,7 @@ class Memory:
 
     def __init__(self, image: Image, records: Callable[[], dict]):
         self.image, self.records = image, records
-        self.params, self.working = image.params, image.P
+        self.params, self.working, self.tables = image.params, image.P, image.tables
         self.text = bytearray()
         self.texts: dict[str, int] = {}
         # (address, bytes) of an element a transfer began and did not finish
@@ -176,11 +155,18 @@ class Memory:
             if written.min() < o.lower or written.max() > o.upper:
                 raise XcpError(ERR_OUT_OF_RANGE, f"{o.name}: {written.tolist()} outside "
                                                  f"[{o.lower:g}, {o.upper:g}]")
+            why = unstable(p, ".".join(o.path), new.reshape(o.shape))
+            if why:
+                raise XcpError(ERR_OUT_OF_RANGE, why)
             old = np.ravel(np.asarray(value_of(p, o.path), dtype=float)).tolist()
             p = replace_path(p, o.path, new.reshape(o.shape) if o.shape else new[0])
             changed[o.name] = (old, new.astype(float).tolist())
-        self.params, self.working = p, params_record(p)
-        return Change(p, self.working, changed)
+        try:                    # (the C path's formats are fixed: the A2L states them)
+            tables = pinned(build_tables(p), self.image.tables)
+        except ValueError as exc:
+            raise XcpError(ERR_OUT_OF_RANGE, str(exc)) from None
+        self.params, self.working, self.tables = p, params_record(p), tables
+        return Change(p, self.working, changed, tables)
 
     def page_valid(self, page: int) -> None:
         if page not in (REFERENCE, WORKING):

@@ -7,7 +7,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 
-from calib.fx_tables import build_tables
 from calib.image import Image
 from firmware.layout import params_record
 from hil.transport.busload import dbc_bits_per_s
@@ -55,12 +54,13 @@ class XcpPort:
             self.slave.page_change = False
             m = self.memory
             ref = self.slave.ecu_page == REFERENCE
-            self._use(*((self.image.params, self.image.P) if ref else (m.params, m.working)))
+            self._use(*((self.image.params, self.image.P, self.image.tables) if ref
+                        else (m.params, m.working, m.tables)))
 
-    def _use(self, p, P) -> None:
+    def _use(self, p, P, tables) -> None:
         e = self.ecu
         e.params, e.P = p, P
-        self.T = params_record(build_tables(p))
+        self.T = params_record(tables)
         if e.T is not None:
             e.T = self.T
 
