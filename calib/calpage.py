@@ -207,8 +207,9 @@ def apply(p, calibration: tuple):
 
 def design_text(calibration: dict, base=None, header: str = "") -> str:
     """A design file: the ``[design]`` table of the design file ``base`` (the run's, checked
-    by the caller with ``calib.options.load_options``; None: the defaults), and ``[calibration]``: ``base``'s, with ``calibration`` ({name: number or
-    list}) over it. Numbers are written as Python's repr, so they read back bit for bit."""
+    by the caller with ``calib.options.load_options``; None: the defaults), and
+    ``[calibration]``: ``base``'s, with ``calibration`` ({name: number or list}) over it.
+    Numbers are written as Python's repr, so they read back bit for bit."""
     import tomli_w
 
     from calib.errors import read_toml

@@ -16,10 +16,11 @@ different formats, one element) with its address, type, conversion, unit and lim
 
 What may be written: only the fields of ``calib.calpage.WRITABLE``, within their limits
 (which follow from the design's own value: a gain to 4x its magnitude, a rate within [0, 1],
-a safety threshold only towards earlier entry, a limit only down). Every other calibration field is read-only:
-the discretised model and what is derived from it (Phi, Gamma, H, ..., the FDI bank), the
-ADC and plant constants, the fault detection and the safety relevance of each fault. The FX
-tables are re-derived from CAL whenever CAL changes, so a write counts in both paths.
+a safety threshold only towards earlier entry, a limit only down). Every other calibration
+field is read-only: the discretised model and what is derived from it (Phi, Gamma, H, ...,
+the FDI bank), the ADC and plant constants, the fault detection and the safety relevance of
+each fault. The FX tables are re-derived from CAL whenever CAL changes, in the formats the
+ECU was built with (``calib.fx_tables.pinned``), so a write counts in both paths.
 """
 
 from __future__ import annotations

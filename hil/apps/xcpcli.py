@@ -170,6 +170,7 @@ def _save(args, key, a2l, bus, items) -> dict:
     from calib.errors import ConfigError
     from calib.options import load_options
     from hil.xcp.memory import REFERENCE, WORKING
+    from hil.xcp.protocol import PAGE_XCP
 
     if args.design is not None:                  # (a bad base: one line, before connecting)
         try:
@@ -182,7 +183,7 @@ def _save(args, key, a2l, bus, items) -> dict:
     with xt.connected(bus, key, timeout=args.timeout) as x:
         xt.session(x, a2l)
         for page in (REFERENCE, WORKING):
-            x.setCalPage(0x02, 0, page)             # (the master's view: XCP access)
+            x.setCalPage(PAGE_XCP, 0, page)         # (the master's view)
             for it in cal:
                 x.setMta(it.address)
                 raw[page, it.name] = bytes(x.upload(it.size)[:it.size])
@@ -194,12 +195,9 @@ def _save(args, key, a2l, bus, items) -> dict:
             if np.dtype(it.dtype).kind in "iu" and it.factor == 1.0:
                 v = [int(e) for e in v]             # (an integer field stays whole)
             changed[it.name[len("cal."):]] = v[0] if it.count == 1 else v
-    try:
-        text = design_text(changed, args.design, header=(
-            f"the working page of ECU {a2l.epk}, saved by python -m hil xcp save\n"
-            f"(what differs from its reference page; read back with --design)"))
-    except ConfigError as exc:
-        raise ValueError(f"--design: {exc}") from None
+    text = design_text(changed, args.design, header=(
+        f"the working page of ECU {a2l.epk}, saved by python -m hil xcp save\n"
+        f"(what differs from its reference page; read back with --design)"))
     tmp = Path(args.file).with_name(Path(args.file).name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, args.file)
