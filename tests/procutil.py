@@ -43,8 +43,9 @@ def assert_only_timing_failed(returncode: int, rep: dict, timing=REALTIME_TIMING
 @contextmanager
 def bench_run(root: Path, out: Path, *argv: str):
     """``python -m hil run ... --out OUT --json`` started: (the process, the hub's URL once it
-    has printed it). The body waits for it (``communicate``); a run still going when the body
-    leaves (an assertion failed) is killed."""
+    has printed its bus; None on a kernel bus such as vcan0). The body waits for it
+    (``communicate``); a run still going when the body leaves (an assertion failed) is
+    killed."""
     import re
     import subprocess
     import sys
@@ -54,14 +55,14 @@ def bench_run(root: Path, out: Path, *argv: str):
                             "--json"], cwd=root, stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
     try:
-        url = None
+        line = ""
         deadline = time.monotonic() + 300
-        while url is None and time.monotonic() < deadline:
+        while not line.startswith("bus: ") and time.monotonic() < deadline:
             line = run.stderr.readline()
-            m = re.search(r"ws://127\.0\.0\.1:\d+/", line)
-            url = m.group(0) if m else None
             assert line or run.poll() is None, "hil run ended before its bus came up"
-        yield run, url
+        assert line.startswith("bus: "), "hil run printed no bus within 300 s"
+        m = re.search(r"ws://127\.0\.0\.1:\d+/", line)
+        yield run, m.group(0) if m else None
     finally:
         if run.poll() is None:
             run.kill()

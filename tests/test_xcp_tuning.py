@@ -26,30 +26,57 @@ GRADE, SPEED, SECONDS = "C", 20.0, 60.0
 W, SETTLE = 5000, 1000                   # the write's tick; ticks to settle before measuring
 
 
-def _drive(opts=None, writes=None) -> np.ndarray:
-    """log RMS ratios to the passive twin [BA, SWS, DTD] over ticks [W + SETTLE, end) of a
-    lockstep drive in safety mode, seed 1; ``writes``: (name, values) written before tick W."""
-    p = ecu_params(CFG, "safety", opts=opts)
-    plant = PlantNode(CFG, constant_route(GRADE, SPEED, SECONDS), 1, CODEC, key=KEY)
-    ecu = EcuNode(p, CODEC, lockstep=True, key=KEY)
-    app = app_node(CODEC, "safety", p.dt_s, key=KEY)
-    if writes:
-        run_in_process(plant, ecu, app, until=W)
-        _write_between_ticks(ecu, *writes)
-    run_in_process(plant, ecu, app)
-    assert not ecu.trace()["faults"].any()          # (no fault on the way)
-    t = plant.trace()
-    s = slice(W + SETTLE, None)
+def log_ratios(t: dict, start: int) -> np.ndarray:
+    """log RMS ratios to the passive twin [BA, SWS, DTD] of plant trace ``t`` from tick
+    ``start`` on."""
+    s = slice(start, None)
     return np.array([np.log(np.sqrt(np.mean(t[k][s] ** 2) / np.mean(t["p_" + k][s] ** 2)))
                      for k in ("ba", "sws", "dtd")])
+
+
+def predicted_change(k0, k1, grade: str, speed: float, window_s: float):
+    """(predicted, sigma): the change in log ratios that the exact analysis gives for gain
+    ``k1`` against ``k0`` on a car already under ``k0``, and the scatter of that paired
+    difference over a window of ``window_s`` (``window_covariance`` of the car under K0 as
+    the baseline, K1 - K0 as the change)."""
+    k0, k1 = np.asarray(k0), np.asarray(k1)
+    m = linear_model(CFG.vehicle, GRADE_GQ_M3[grade], speed)
+    under_k0 = dataclasses.replace(m, A=m.A - np.outer(m.B, k0), C=m.C - np.outer(m.D, k0))
+    ratio, cov = window_covariance(under_k0, k1 - k0, window_s)
+    return np.log(ratio), np.sqrt(np.diag(cov))
+
+
+def drive(route, opts=None, writes=None, key: bytes = KEY, ticks=None):
+    """A lockstep drive of ``route`` in safety mode, seed 1, in this process: (plant trace,
+    ECU trace). ``writes``: (tick, name, values), written over XCP between that tick and the
+    one before; ``ticks``: the drive's first ticks only (as ``hil run --duration``)."""
+    p = ecu_params(CFG, "safety", opts=opts)
+    plant = PlantNode(CFG, route, 1, CODEC, key=key)
+    if ticks is not None:
+        plant.n = min(plant.n, ticks)
+    ecu = EcuNode(p, CODEC, lockstep=True, key=key)
+    app = app_node(CODEC, "safety", p.dt_s, key=key)
+    if writes:
+        tick, name, values = writes
+        run_in_process(plant, ecu, app, until=tick)
+        _write_between_ticks(ecu, name, values)
+    run_in_process(plant, ecu, app)
+    assert not ecu.trace()["faults"].any()          # (no fault on the way)
+    return plant.trace(), ecu.trace()
+
+
+def _drive(opts=None, writes=None) -> np.ndarray:
+    """log ratios over ticks [W + SETTLE, end) of a drive at GRADE, SPEED for SECONDS."""
+    route = constant_route(GRADE, SPEED, SECONDS)
+    t, _ = drive(route, opts, writes and (W, *writes))
+    return log_ratios(t, W + SETTLE)
 
 
 def test_a_gain_row_written_during_a_run_changes_the_ride_as_the_analysis_predicts():
     """The safety LQR's row halved over XCP at tick W: the change in log ratios over the rest
     of the drive (against the same drive unchanged, same seed: the same road) is what the exact
     analysis of the new gain predicts for a car already under the old one, within 3 sigma of
-    that paired difference's scatter (``window_covariance`` of the car under K0 as the
-    baseline, K1 - K0 as the change); the change itself is many sigma (the check can fail).
+    that paired difference's scatter; the change itself is many sigma (the check can fail).
     The same gain from the start, as a design file's [calibration] sets it, gives the same
     segment to rounding of the settled transient."""
     p = ecu_params(CFG, "safety")
@@ -58,11 +85,8 @@ def test_a_gain_row_written_during_a_run_changes_the_ride_as_the_analysis_predic
     r0 = _drive()
     r1 = _drive(writes=("cal.control.k_safety", k1))
     rc = _drive(opts=DesignOptions(calibration=(("control.k_safety", tuple(k1)),)))
-    m = linear_model(CFG.vehicle, GRADE_GQ_M3[GRADE], SPEED)
-    under_k0 = dataclasses.replace(m, A=m.A - np.outer(m.B, k0), C=m.C - np.outer(m.D, k0))
-    ratio, cov = window_covariance(under_k0, k1 - k0, SECONDS - (W + SETTLE) * p.dt_s)
-    sigma = np.sqrt(np.diag(cov))
-    predicted, measured = np.log(ratio), r1 - r0
+    predicted, sigma = predicted_change(k0, k1, GRADE, SPEED, SECONDS - (W + SETTLE) * p.dt_s)
+    measured = r1 - r0
     assert np.all(np.abs(measured - predicted) < 3 * sigma), (measured, predicted, sigma)
     assert np.max(np.abs(measured) / sigma) > 10, (measured, sigma)
     assert np.max(np.abs(rc - r1)) < 1e-3, (rc, r1)

@@ -46,6 +46,7 @@ class Slave:
         self._seed_for = 0                 # the resource the seed unlocks
         self.seeds = 0
         self.block: Optional[tuple[int, bytearray]] = None   # DOWNLOAD block: (left, data)
+        self.refused_left = 0              # bytes still to come of a refused DOWNLOAD block
         self.changes: list[Change] = []
         self.page_change = False           # the ECU page changed: the node swaps records
         self.requests = self.errors = 0
@@ -58,6 +59,14 @@ class Slave:
         cmd = cto[0]
         if not self.connected and cmd != x.CONNECT:
             return []                       # (a slave not connected answers nothing)
+        if self.refused_left:
+            # the rest of a block whose DOWNLOAD was refused: its one ERR is sent (a master
+            # in block mode reads no answer before the block's end, so one per frame would
+            # answer its next commands)
+            if cmd == x.DOWNLOAD_NEXT and cto[1:2] == bytes([self.refused_left]):
+                self.refused_left = max(0, self.refused_left - (MAX_CTO - 2))
+                return []
+            self.refused_left = 0
         self.requests += 1
         try:
             if cmd in _DAQ_CMDS and self.protection & x.RES_DAQ:
@@ -80,6 +89,9 @@ class Slave:
             self.refusals[name] = self.refusals.get(name, 0) + 1
             if exc.code == x.ERR_ACCESS_LOCKED and cmd == x.UNLOCK:
                 self.connected = False      # a wrong key ends the session
+            if cmd == x.DOWNLOAD and len(cto) > 1 and MAX_CTO - 2 < cto[1] <= MAX_BS * (
+                    MAX_CTO - 2):
+                self.refused_left = cto[1] - (MAX_CTO - 2)
             return [bytes([x.ERR, exc.code])]
 
     def take_changes(self) -> list[Change]:
