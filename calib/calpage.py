@@ -180,26 +180,38 @@ def check_table(path, table) -> tuple:
     return tuple(out)
 
 
+def refusal(reference, name: str, values) -> str | None:
+    """Why ``values`` must not be written into the writable object ``name`` (None: they
+    may), by the checks every write passes, over XCP (``hil.xcp.memory``) or from a design
+    file (``apply``): the object's size, every element finite and inside its limits, a whole
+    number where the field is an integer, and a gain row's closed loop stable. The limits
+    follow from the ``reference`` parameters (the design as built, as the A2L's do), never
+    from a working page: repeated writes would otherwise ratchet them."""
+    current = value_of(reference, tuple(name.split(".")))
+    v = np.ravel(np.asarray(values, dtype=float))
+    size = int(np.size(current))
+    if v.size != size:
+        return f"{name}: {v.size} values, the object has {size}"
+    if not np.all(np.isfinite(v)):
+        return f"{name}: not a finite number"
+    lo, hi = limits(name, current)
+    if v.min() < lo or v.max() > hi:
+        return f"{name}: {v.tolist()} outside [{lo:g}, {hi:g}] (the A2L's limits)"
+    if np.issubdtype(np.asarray(current).dtype, np.integer) and np.any(v != np.round(v)):
+        return f"{name}: must be a whole number"
+    return unstable(reference, name, v)
+
+
 def apply(p, calibration: tuple):
     """``p`` (``EcuParams``) with each (name, values) of a ``[calibration]`` table set; a
-    value of the wrong size or outside its limits (from ``p``'s own value) is a ConfigError."""
+    value ``refusal`` refuses (its limits from ``p`` as given) is a ConfigError."""
+    reference = p
     for name, values in calibration:
-        path = tuple(name.split("."))
-        current = value_of(p, path)
-        size = int(np.size(current))
-        where = f"design [calibration] \"{name}\""
-        if len(values) != size:
-            raise ConfigError(f"{where}: {len(values)} values, the object has {size}")
-        lo, hi = limits(name, current)
-        if min(values) < lo or max(values) > hi:
-            raise ConfigError(f"{where}: {list(values)} outside [{lo:g}, {hi:g}] "
-                              f"(the A2L's limits for this design)")
-        if (np.issubdtype(np.asarray(current).dtype, np.integer)
-                and not all(v == int(v) for v in values)):
-            raise ConfigError(f"{where}: must be a whole number")
-        why = unstable(p, name, np.asarray(values))
+        why = refusal(reference, name, values)
         if why:
             raise ConfigError(f"design [calibration] {why}")
+        path = tuple(name.split("."))
+        current = value_of(p, path)
         p = replace_path(p, path, np.asarray(values).reshape(np.shape(current))
                          if np.ndim(current) else values[0])
     return p

@@ -325,20 +325,27 @@ def test_dbc_export_command(tmp_path):
 
 
 def test_bus_load_counts_a_daq_as_the_xcp_slave_does():
-    """tools.busload --daq and the slave's budget (hil.xcp.daq) count the same bits: 2 ODTs
-    on the 1 ms event every 4th tick fit the 80 % budget, one every tick does not."""
+    """tools.busload --daq decides as the slave's budget (hil.xcp.daq) does: 2 ODTs on the
+    1 ms event every 4th tick fit the 80 % budget, one every tick does not."""
     from hil.transport.busload import dbc_bits_per_s
     from hil.xcp.daq import BUDGET, Daq, DaqList
+    from hil.xcp.protocol import ERR_DAQ_CONFIG, XcpError
     from tools.busload import daq_spec, main
 
-    slave = Daq(None, dbc_bits_per_s(), 500_000.0)
-    for spec, verdict in (("1ms/4:2", "pass"), ("1ms:1", "fail"), ("10ms:5", "pass")):
+    for spec, verdict in (("1ms/4:2", "pass"), ("1ms:1", "fail"), ("10ms:5", "pass"),
+                          ("10ms/2:40", "fail")):
         event, pre, odts = daq_spec(spec)
         o = bus_load(500_000.0, ((event, pre, odts),))
+        slave = Daq(None, dbc_bits_per_s(), 500_000.0)
         d = DaqList(sizes=[1] * odts, event={"1ms": 0, "10ms": 1}[event], prescaler=pre)
-        want = (slave.base_bits + slave.bits_per_s([d])) / 500_000.0
-        assert o["load"] == pytest.approx(want, rel=1e-12), spec
-        assert o["verdict"] == verdict and (o["load"] <= BUDGET) == (verdict == "pass")
+        try:
+            slave._budget([d])
+            decided = "pass"
+        except XcpError as exc:
+            assert exc.code == ERR_DAQ_CONFIG
+            decided = "fail"
+        assert o["verdict"] == decided == verdict, spec
+        assert (o["load"] <= BUDGET) == (verdict == "pass")
     assert main(["--daq", "1ms:1", "--json"]) == 1 and main(["--daq", "1ms/4:2", "--json"]) == 0
     for bad in ("2ms:1", "1ms/0:1", "1ms", "1ms:x"):
         with pytest.raises(ValueError, match="--daq"):

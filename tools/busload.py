@@ -39,16 +39,17 @@ def daq_spec(text: str) -> tuple[str, int, int]:
 def bus_load(bitrate: float = 500_000.0, daq: tuple = ()) -> dict:
     """The DBC's cyclic traffic, and the DAQ lists ``daq`` ((event, prescaler, odts), ...)."""
     from calib.a2l import EVENTS, MAX_DTO
+    from hil.xcp.daq import list_bits_per_s
 
-    rows = cyclic()
-    period = {e[1]: e[3] for e in EVENTS}
+    codec = Codec()
+    rows = cyclic(codec)
+    channel = {short: (ch, ms) for _, short, ch, ms in EVENTS}
     for event, prescaler, odts in daq:
-        ms = period[event] * prescaler
-        bits = frame_bits(MAX_DTO)
+        ch, ms = channel[event]
         rows.append({"message": f"DAQ {event}/{prescaler} x{odts}",
-                     "id": Codec().message("XCP_RES").frame_id, "dlc": MAX_DTO,
-                     "cycle_ms": ms / odts, "bits_per_frame": bits,
-                     "bits_per_s": odts * bits * 1000.0 / ms})
+                     "id": codec.message("XCP_RES").frame_id, "dlc": MAX_DTO,
+                     "cycle_ms": ms * prescaler / odts, "bits_per_frame": frame_bits(MAX_DTO),
+                     "bits_per_s": list_bits_per_s(odts, ch, prescaler)})
     for r in rows:
         r["load"] = r["bits_per_s"] / bitrate
     total = sum(r["bits_per_s"] for r in rows)

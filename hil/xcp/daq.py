@@ -24,6 +24,13 @@ MAX_ENTRIES = 7                 # per ODT (one byte each at least)
 MODE_DIRECTION_STIM, MODE_TIMESTAMP, MODE_PID_OFF = 0x02, 0x10, 0x20
 
 
+def list_bits_per_s(odts: int, event: int, prescaler: int) -> float:
+    """What a running DAQ list puts on the bus: one DTO per ODT (``odts``) at every
+    ``prescaler``-th occurrence of event channel ``event``, each DTO an 8-byte classic frame
+    (``tools.busload --daq`` counts a planned list with this)."""
+    return odts * frame_bits(MAX_DTO) * 1000.0 / (EVENTS[event][3] * prescaler)
+
+
 @dataclass
 class DaqList:
     odts: list = field(default_factory=list)     # per ODT: entries (record, offset, size)
@@ -135,10 +142,8 @@ class Daq:
                                                f"{n} entries written, {room} bytes of room")
 
     def bits_per_s(self, lists) -> float:
-        """What these lists put on the bus (DTOs as 8-byte classic frames)."""
-        bits = frame_bits(MAX_DTO)
-        return sum(len(d.sizes) * bits * 1000.0 / (EVENTS[d.event][3] * d.prescaler)
-                   for d in lists)
+        """What these lists put on the bus."""
+        return sum(list_bits_per_s(len(d.sizes), d.event, d.prescaler) for d in lists)
 
     def load(self) -> float:
         """The bus load with the running lists."""

@@ -7,9 +7,9 @@ text area (``TEXT_BASE``) holds what GET_ID and GET_DAQ_EVENT_INFO point the mas
 
 Writes go to the working page only, and only to ``calib.calpage.WRITABLE`` objects, each
 element whole (a transfer may end inside an element: its bytes wait for the next transfer,
-which must continue at that address), every element written finite and inside its A2L
-limits, and a gain row only if its closed loop on the ECU's own model is stable
-(``calib.calpage.unstable``). An accepted write gives new parameters (``EcuParams``,
+which must continue at that address), each object changed passing the checks a design
+file's value passes (``calib.calpage.refusal``: finite, inside its A2L limits, a gain row
+only if its closed loop on the ECU's own model is stable). An accepted write gives new parameters (``EcuParams``,
 derived fields and the fixed-point tables made again from them): the ECU takes them between
 two ticks.
 """
@@ -21,7 +21,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from calib.calpage import replace_path, unstable, value_of
+from calib.calpage import refusal, replace_path, value_of
 from calib.fx_tables import build_tables, pinned
 from calib.image import Image, Obj
 from firmware.fx.tables import FxTables
@@ -146,16 +146,7 @@ class Memory:
         for o in objs:
             off = o.address - base
             new = np.frombuffer(bytes(page[off:off + o.size]), dtype=o.dtype)
-            lo = max(start, o.address) - o.address
-            hi = min(start + len(data), o.address + o.size) - o.address
-            isz = np.dtype(o.dtype).itemsize
-            written = new[lo // isz:hi // isz].astype(float)
-            if not np.all(np.isfinite(written)):
-                raise XcpError(ERR_OUT_OF_RANGE, f"{o.name}: not a finite number")
-            if written.min() < o.lower or written.max() > o.upper:
-                raise XcpError(ERR_OUT_OF_RANGE, f"{o.name}: {written.tolist()} outside "
-                                                 f"[{o.lower:g}, {o.upper:g}]")
-            why = unstable(p, ".".join(o.path), new.reshape(o.shape))
+            why = refusal(self.image.params, ".".join(o.path), new)
             if why:
                 raise XcpError(ERR_OUT_OF_RANGE, why)
             old = np.ravel(np.asarray(value_of(p, o.path), dtype=float)).tolist()
