@@ -159,11 +159,11 @@ class Image:
             Segment("STATE", RAM_BASE, self.S_dtype.itemsize, "S", False),
             Segment("INPUTS", i_base, self.I_dtype.itemsize, "I", False),
             Segment("OUTPUTS", o_base, self.O_dtype.itemsize, "O", False))
-        self.epk = self._epk()
         objs = self._cal() + self._fx() + self._meas()
         self.objects = {o.name: o for o in objs}
         if len(self.objects) != len(objs):
             raise ValueError("duplicate object names in the image")
+        self.epk = self._epk()
         missing = sorted(n for n in WRITABLE if "cal." + n not in self.objects)
         if missing:
             raise ValueError(f"WRITABLE names fields the calibration does not have: {missing}")
@@ -172,12 +172,16 @@ class Image:
         return next(s for s in self.segments if s.name == name)
 
     def _epk(self) -> str:
-        """The software and its memory layout: changes with the layout of any record (the
-        vehicle's array sizes among them) and with the software version, not with the data
-        (a run's mode or gains: the same A2L describes it)."""
+        """What the A2L says of this memory: changes with the software version, the layout
+        of any record (the vehicle's array sizes among them) and how each object is
+        described (its conversion, as the fixed-point format of an ``fx.`` object, and its
+        limits: another car's or gains file's), not with the values alone (a run's mode:
+        the same A2L describes it). A master with another A2L can tell."""
         h = hashlib.sha256(self.params.software_version.encode())
         for dt in (self.P.dtype, self.T.dtype, self.S_dtype, self.I_dtype, self.O_dtype):
             h.update(repr(dt.descr).encode())
+        for name, o in sorted(self.objects.items()):
+            h.update(repr((name, o.frac, o.factor, o.lower, o.upper)).encode())
         return ("SUSP_ECU_" + h.hexdigest())[:EPK_LEN]
 
     def _cal(self) -> list[Obj]:

@@ -172,3 +172,22 @@ def test_every_address_is_where_gcc_lays_the_object_out(tmp_path):
         off, size = map(int, line.split())
         base = symbols[image_c.SYMBOLS[o.segment][1]]
         assert (base + off, size) == (o.address, o.size), o.name
+
+
+def test_the_epk_names_what_the_a2l_says_of_the_memory():
+    """One A2L serves every mode of a car; another car (the SUV: the same layout, other
+    limits and fixed-point formats) or a scaled gain row has another EPK, so a master holding
+    the default car's A2L is refused by the tool instead of reading wrong physical values."""
+    from calib import calpage
+    from hil.config import load_vehicle
+    from hil.nodes.sil import ecu_params
+
+    cfg = default_vehicle()
+    epks = {m: Image(ecu_params(cfg, m)).epk for m in ("auto", "comfort", "safety")}
+    assert set(epks.values()) == {IMAGE.epk}, epks
+    suv = Image(ecu_params(load_vehicle(ROOT / "hil" / "vehicles" / "suv.toml"), "auto"))
+    assert suv.P.dtype == IMAGE.P.dtype and suv.T.dtype == IMAGE.T.dtype    # (same layout)
+    p = IMAGE.params
+    halved = calpage.replace_path(p, ("control", "k_safety"), 0.5 * np.asarray(
+        p.control.k_safety))
+    assert len({IMAGE.epk, suv.epk, Image(halved).epk}) == 3

@@ -134,3 +134,18 @@ def test_a_written_calibration_keeps_the_fixed_point_formats_of_the_a2l():
     larger = build_tables(calpage.replace_path(p, ("control", "k_safety"), k * 2.0))
     with pytest.raises(ValueError, match="does not fit its fixed-point format"):
         pinned(larger, ref)
+
+
+def test_every_writable_object_as_built_passes_the_checks_of_a_write():
+    """The limits follow from the design's value, so the reference page itself passes them
+    (for each car shipped): a write of one element is never refused for the others."""
+    from pathlib import Path
+
+    from hil.config import load_vehicle
+
+    suv = Path(__file__).resolve().parents[1] / "hil" / "vehicles" / "suv.toml"
+    for cfg in (CFG, load_vehicle(suv)):
+        p = ecu_params(cfg, "auto")
+        refused = {n: calpage.refusal(p, n, calpage.value_of(p, tuple(n.split("."))))
+                   for n in calpage.WRITABLE}
+        assert not any(refused.values()), {n: w for n, w in refused.items() if w}

@@ -6,7 +6,7 @@
 
 #include <stdint.h>
 
-#define ECU_IMAGE_EPK "SUSP_ECU_70a196afb3334cc34b5f748"
+#define ECU_IMAGE_EPK "SUSP_ECU_4a883598f738d1afbfaf698"
 #define ECU_IMAGE_EPK_LEN 32
 #define ECU_IMAGE_IDENT_ADDR 0x100u
 #define ECU_IMAGE_IDENT_SIZE 32u

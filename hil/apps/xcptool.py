@@ -236,7 +236,9 @@ def session(x, a2l: A2l) -> dict:
     epk = x.upload(len(a2l.epk))[:len(a2l.epk)].decode(errors="replace")
     if epk != a2l.epk:
         raise RuntimeError(f"the ECU's EPK {epk!r} is not the A2L's {a2l.epk!r}: the A2L "
-                           "does not describe this ECU's memory (make tables, same vehicle)")
+                           "does not describe this ECU's memory (make the run's own: python "
+                           "-m tools.tables --vehicle V [--gains G] [--design D] --out DIR, "
+                           "then --a2l DIR/ecu.a2l)")
     x.getCommModeInfo()
     x.cond_unlock()
     return {"epk": epk, "max_cto": r.maxCto, "max_dto": r.maxDto,
