@@ -89,12 +89,14 @@ def _refused(code: int, f, *args) -> None:
 
 def _tune(bus, key: bytes, a2l) -> tuple[np.ndarray, np.ndarray]:
     """Once the drive is WRITE_AFTER ticks in: the refused writes and DAQ, then the safety
-    row halved. (the gain before, the one written)."""
+    row halved: (the gain before, the one written)."""
     it, tick = a2l.item(GAIN), a2l.item("in.tick")
     over = Collect([_list(0, 1, ("out.faults", "out.force_cmd_n", "out.road_est_um"))])
     with xt.connected(bus, key, policy=over, timeout=2.0) as x:
         _connect(x)
+        deadline = time.monotonic() + 600
         while xt.read(x, tick)[0] < WRITE_AFTER:          # (a write during the drive)
+            assert time.monotonic() < deadline, "the drive did not reach the write's tick"
             time.sleep(0.05)
         k0 = np.asarray(xt.read(x, it))
         half = (0.5 * k0).tobytes()
@@ -107,7 +109,7 @@ def _tune(bus, key: bytes, a2l) -> tuple[np.ndarray, np.ndarray]:
                  (1.5 * k0).tobytes())                        # inside them, but unstable
         np.testing.assert_array_equal(xt.read(x, it), k0)
         over.setup()
-        _refused(px.ERR_DAQ_CONFIG, over.start)                # 1 ms, 3 ODTs: over budget
+        _refused(px.ERR_DAQ_CONFIG, over.start)           # every tick, 3 outputs: over budget
         xt.push(x, it.address, half)
         np.testing.assert_array_equal(xt.read(x, it), 0.5 * k0)
         x.disconnect()

@@ -9,9 +9,9 @@ Writes go to the working page only, and only to ``calib.calpage.WRITABLE`` objec
 element whole (a transfer may end inside an element: its bytes wait for the next transfer,
 which must continue at that address), each object changed passing the checks a design
 file's value passes (``calib.calpage.refusal``: finite, inside its A2L limits, a gain row
-only if its closed loop on the ECU's own model is stable). An accepted write gives new parameters (``EcuParams``,
-derived fields and the fixed-point tables made again from them): the ECU takes them between
-two ticks.
+only if its closed loop on the ECU's own model is stable). An accepted write gives new
+parameters (``EcuParams``, derived fields and the fixed-point tables made again from them):
+the ECU takes them between two ticks.
 """
 
 from __future__ import annotations
