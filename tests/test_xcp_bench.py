@@ -54,19 +54,16 @@ BUSES = [pytest.param("hub", 120, True, marks=[pytest.mark.hil,
                                                  pytest.mark.needs_vcan])]
 
 
+def _bus(kind: str, url) -> tuple[str, str]:
+    """The bus as -i/-c name it."""
+    return ("remote", url) if kind == "hub" else ("socketcan", "vcan0")
+
+
 def _bus_args(kind: str, url, out: Path) -> list[str]:
-    if kind == "hub":
-        return ["-i", "remote", "-c", url, "--secret-file", str(out / "hub.secret")]
-    return ["-i", "socketcan", "-c", "vcan0"]
-
-
-def _tester_bus(kind: str, url, out: Path):
-    from hil.apps.diag import tester_bus
-    from hil.transport.bus import resolve
-    from hil.transport.secoc import load_key
-
-    spec, _ = resolve(*(("remote", url) if kind == "hub" else ("socketcan", "vcan0")))
-    return tester_bus(spec, load_key(out / "hub.secret") if kind == "hub" else None, RES)
+    """The tool's bus arguments (on the hub, with the run's secret: the DBC's TESTER)."""
+    interface, channel = _bus(kind, url)
+    secret = ["--secret-file", str(out / "hub.secret")] if kind == "hub" else []
+    return ["-i", interface, "-c", channel, *secret]
 
 
 def _connect(x, seconds: float = 300.0):
@@ -127,15 +124,18 @@ def _xcp(bus_args, key_file: Path, *argv):
 def test_pyxcp_tunes_and_measures_a_running_bench(kind, seconds, slow_daq, tmp_path):
     from asammdf import MDF
 
+    from hil.apps.diag import open_tester_bus
+
     out = tmp_path / "run"
-    bus_extra = [] if kind == "hub" else ["-i", "socketcan", "-c", "vcan0"]
+    bus_extra = [] if kind == "hub" else _bus_args(kind, None, out)   # (the hub: it makes it)
     a2l = xt.A2l()
     key_file = golden.key_file(tmp_path)
     with bench_run(ROOT, out, "--route", str(ROUTE), "--mode", "safety", "--seed", "1",
                    "--pace", "lockstep", "--key-file", str(key_file),
                    "--start-time", golden.START_TIME, "--duration", str(seconds),
                    *bus_extra) as (run, url):
-        bus = _tester_bus(kind, url, out)
+        bus = open_tester_bus(*_bus(kind, url), out / "hub.secret" if kind == "hub" else None,
+                              response_id=RES)
         try:
             k0, k1 = _tune(bus, golden.secoc_key(), a2l)
         finally:

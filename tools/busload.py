@@ -22,6 +22,7 @@ from hil.transport.codec import DBC_PATH, Codec
 def daq_spec(text: str) -> tuple[str, int, int]:
     """EVENT[/PRESCALER]:ODTS as (event, prescaler, odts); ValueError with the reason."""
     from calib.a2l import EVENTS
+    from hil.xcp.daq import MAX_PID
 
     names = {e[1]: e for e in EVENTS}
     try:
@@ -30,9 +31,9 @@ def daq_spec(text: str) -> tuple[str, int, int]:
         prescaler, n = int(pre or 1), int(odts)
     except ValueError:
         raise ValueError(f"--daq {text!r}: EVENT[/PRESCALER]:ODTS, e.g. 1ms/4:2") from None
-    if event not in names or not 1 <= prescaler <= 255 or not 1 <= n <= 0xFB:
+    if event not in names or not 1 <= prescaler <= 255 or not 1 <= n <= MAX_PID:
         raise ValueError(f"--daq {text!r}: event one of {', '.join(names)}, prescaler "
-                         f"1..255, ODTs 1..251")
+                         f"1..255, ODTs 1..{MAX_PID}")
     return event, prescaler, n
 
 
