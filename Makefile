@@ -43,11 +43,14 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m tools.bench --out out/bench.json
 
-# C-portable coefficient tables (c/generated/ecu_tables.h/.c); -check fails when stale
+# the shipped calibrations as data (calib/data/*.json, designed afresh), then the C-portable
+# coefficient tables and the A2L (c/generated) from them; -check fails when either is stale
 tables: $(STAMP)
+	$(PY) -m tools.calibration
 	$(PY) -m tools.tables --out c/generated
 
 tables-check: $(STAMP)
+	$(PY) -m tools.calibration --check
 	$(PY) -m tools.tables --out c/generated --check
 
 # Real SocketCAN in User-mode Linux (hil/transport/vcan.py; docs/vcan.md): the bench on vcan0 in a real

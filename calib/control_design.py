@@ -6,12 +6,14 @@ scaled to each car's body."""
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import math
 from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
+from calib import grid
 from calib.errors import ConfigError
 from calib.galqr import tune, vehicle_digest
 from calib.iso8608 import GRADE_GQ_M3
@@ -147,54 +149,159 @@ def comfort_polish(cfg: VehicleConfig, opts: DesignOptions, model, start: np.nda
     """The comfort gain that minimises the exact BA ratio of the law as the ECU runs it
     (``comfort_as_run``) under the bounds of ``comfort_total_gain``, all on that law: SWS at
     most ``comfort_sws_top``, DTD at most ``opts.comfort_bound[1]``,
-    static stiffness at least ``opts.comfort_min_stiffness`` x the spring's. SLSQP on the
-    five gains (scaled by the start), from ``start`` (the LQR design, which satisfies them).
+    static stiffness at least ``opts.comfort_min_stiffness`` x the spring's, the loop stable
+    over the BP-PID's K_i range. SLSQP from ``start`` (the LQR design, gradients by central
+    differences) finds the optimum to a few 1e-6; from there ``lattice_descent`` searches a
+    lattice (each gain a whole multiple of 2^-``opts.comfort_polish_bits`` of its start's
+    power of two), so the design is a lattice point, exact in binary.
 
     The LQR family is optimal for the relative model's variances, not for this problem: the
     PID's leak takes the skyhook off below 0.1 Hz, and the 3 sigma SWS bound moves with the
     gain. Measured on the SUV with its tyre x0.7 and its damper x1.3 (exact, without the
     SIL's SWS excess): BA 0.045 and 0.044 above their limits from the LQR family, 0.025
     polished; with it, 0.055 and 0.033 on the tyre x0.7 (docs/campaigns.md).
-    Returns ``start`` if the polish does not end feasible, stable and better."""
+
+    Why a lattice: the optimum is flat. On the default car SWS, DTD and stiffness all bind,
+    and along the two directions left the BA ratio changes by 1e-11 over 1e-5 (relative) of
+    the gains: SLSQP with its own forward differences and ftol 1e-10 ended 1e-5 apart under
+    two BLAS kernels (the comfort gains in their 5th digit; the SUV of the vehicle family
+    2e-3 apart) with the same BA to 9 digits; with central differences and ftol 1e-15,
+    2.5e-6 apart. On the lattice every decision compares values that differ by far more
+    than the solves' rounding, and the search starts from the best coarse point of a box
+    around SLSQP's point, which two such points share: every host takes the same path to
+    the same point. The lattice costs the BA ratio 8e-7 on the default car, 7e-6 on the
+    SUV, 2e-7 to 4.4e-5 on the vehicle family's 22 cars (docs/calibration.md). The pattern
+    search alone, from the LQR design, stalled on the DTD bound (BA 0.8010 on the default
+    car, SLSQP 0.7990). Returns ``start`` if the search does not end feasible, stable and
+    better."""
     ks = cfg.vehicle.spring_stiffness_n_per_m
     dtd_bound = opts.comfort_bound[1]
     start = np.asarray(start, dtype=float)
+
+    def at(total: np.ndarray):
+        """(ratios as run, their window bound) at the gain; None if unstable."""
+        aug, K = _comfort_loop(model, total, opts)
+        a_cl = aug.A - np.outer(aug.B, K)
+        if (not float(np.max(np.linalg.eigvals(a_cl).real)) < 0.0
+                or not all(p < 0.0 for _, p in _comfort_poles(model, total, opts))):
+            return None
+        return comfort_as_run(model, total, opts), window_bound(aug, K, opts)
+
+    def judge(total: np.ndarray) -> tuple[float, np.ndarray]:
+        """(BA ratio as run, the bounds' margins); (10, -1) if unstable."""
+        v = at(total)
+        if v is None:
+            return 10.0, np.full(3, -1.0)
+        r, wb = v
+        return float(r[0]), np.array([comfort_sws_top(wb, opts) - r[1], dtd_bound - r[2],
+                                      (ks + total[2]) / ks - opts.comfort_min_stiffness])
+
     scale = np.maximum(np.abs(start), 1.0)
+    x = _slsqp(judge, start, scale)
+    unit = 2.0 ** np.ceil(np.log2(scale))
+    best = lattice_descent(judge, x, unit, opts.comfort_polish_bits)
+    ba0, _ = judge(start)
+    ba1, m1 = judge(best)
+    if not (float(np.min(m1)) >= 0.0 and ba1 < ba0 - POLISH_TIE):
+        return start
+    return best
+
+
+def _slsqp(judge, start: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """SLSQP on ``judge`` (objective, margins >= 0) from ``start``, in units of ``scale``,
+    with gradients by central differences (``_central``)."""
     memo: dict = {}
 
     def at(x: np.ndarray):
-        """(ratios as run, their window bound) at the scaled gain x; None if unstable."""
         key = x.tobytes()
         if key not in memo:
-            total = x * scale
-            aug, K = _comfort_loop(model, total, opts)
-            a_cl = aug.A - np.outer(aug.B, K)
-            if (not float(np.max(np.linalg.eigvals(a_cl).real)) < 0.0
-                    or not all(p < 0.0 for _, p in _comfort_poles(model, total, opts))):
-                memo[key] = None
-            else:
-                memo[key] = (comfort_as_run(model, total, opts), window_bound(aug, K, opts))
+            memo[key] = judge(x * scale)
         return memo[key]
 
-    def margins(x: np.ndarray) -> np.ndarray:
-        v = at(x)
-        if v is None:
-            return np.full(3, -1.0)
-        r, wb = v
-        return np.array([comfort_sws_top(wb, opts) - r[1], dtd_bound - r[2],
-                         (ks + x[2] * scale[2]) / ks - opts.comfort_min_stiffness])
+    res = minimize(lambda x: at(x)[0], start / scale, method="SLSQP",
+                   jac=lambda x: _central(lambda y: at(y)[0], x),
+                   constraints=[{"type": "ineq", "fun": lambda x: at(x)[1],
+                                 "jac": lambda x: _central(lambda y: at(y)[1], x)}],
+                   options={"maxiter": POLISH_SLSQP_ITER, "ftol": 1e-15})
+    return np.asarray(res.x, dtype=float) * scale
 
-    def ba(x: np.ndarray) -> float:
-        v = at(x)
-        return 10.0 if v is None else float(v[0][0])
 
-    x0 = start / scale
-    res = minimize(ba, x0, method="SLSQP", constraints=[{"type": "ineq", "fun": margins}],
-                   options={"maxiter": opts.comfort_polish_iter, "ftol": 1e-10})
-    x = np.asarray(res.x, dtype=float)
-    if at(x) is None or np.min(margins(x)) < -1e-9 or ba(x) >= ba(x0):
-        return start
-    return x * scale
+def _central(f, x: np.ndarray) -> np.ndarray:
+    """d f / d x by central differences (relative step 1e-6): SLSQP's own forward
+    differences carry 1e-8 of noise, which stopped it 2e-3 apart on two kernels."""
+    cols = []
+    for j in range(len(x)):
+        h = 1e-6 * max(abs(x[j]), 1.0)
+        xp, xm = x.copy(), x.copy()
+        xp[j] += h
+        xm[j] -= h
+        cols.append((np.asarray(f(xp), dtype=float) - np.asarray(f(xm), dtype=float)) / (2 * h))
+    return np.array(cols).T
+
+
+POLISH_TIE = 1e-12      # a move lowers the merit by more than this (the solves' rounding: 1e-15)
+POLISH_INFEASIBLE = 1e3  # the merit of a point that violates a bound: this + the violation
+POLISH_COARSE = 8       # the first lattice step: 2^-8 of each gain's power of two
+POLISH_SLSQP_ITER = 100  # SLSQP's iterations before the lattice
+
+
+def lattice_descent(judge, start: np.ndarray, unit: np.ndarray, bits: int) -> np.ndarray:
+    """A pattern search on the lattice whose points are x_j = n_j 2^-bits u_j (n_j integers,
+    ``unit`` u_j powers of two): from the best point of the coarse lattice (the step
+    2^-``POLISH_COARSE`` u_j) in the box of +-1 step around ``start`` rounded onto it, that
+    step halved down to 2^-bits u_j; at each step, move to the best
+    of the coordinate neighbours (+-1 step in one gain), or, when none is better, of the
+    diagonal ones (+-1 step in two), while one lowers the merit by more than ``POLISH_TIE``
+    (``judge``'s objective where every bound holds, else ``POLISH_INFEASIBLE`` plus the
+    largest violation: any feasible point is better than every infeasible one); ties go to
+    the first in a fixed order. Every point is exact in binary and every decision compares
+    merits apart by more than the tie, so the path is the same on every host. ``judge(x)``
+    returns (objective, the bounds' margins, each >= 0 when feasible)."""
+    n_dim = len(start)
+    fine = 2.0 ** -bits
+    memo: dict = {}
+
+    def merit(n: tuple) -> float:
+        if n not in memo:
+            f, margins = judge(np.array(n, dtype=float) * fine * unit)
+            violation = max(0.0, -float(np.min(margins)))
+            memo[n] = f if violation == 0.0 else POLISH_INFEASIBLE + violation
+        return memo[n]
+
+    eye = np.eye(n_dim, dtype=np.int64)
+    coord = [s * eye[j] for j in range(n_dim) for s in (1, -1)]
+    diag = [s * eye[i] + t * eye[j] for i in range(n_dim) for j in range(i + 1, n_dim)
+            for s in (1, -1) for t in (1, -1)]
+    coarse = 1 << (bits - POLISH_COARSE)
+    centre = np.rint(start / unit / (fine * coarse)).astype(np.int64)
+    # the start: the best coarse point of the 3^n box around ``start`` rounded, not the
+    # rounded point itself: two hosts whose starts round apart (SLSQP's few 1e-6 straddling
+    # a rounding boundary) still share the box's middle, where its best point is
+    n, n_merit = None, math.inf
+    for d in itertools.product((0, -1, 1), repeat=n_dim):
+        m = merit(tuple((centre + np.array(d)) * coarse))
+        if n is None or m < n_merit - POLISH_TIE:
+            n, n_merit = (centre + np.array(d)) * coarse, m
+    for level in range(POLISH_COARSE, bits + 1):
+        step = 1 << (bits - level)
+        for _ in range(MAX_MOVES):
+            here = merit(tuple(n))
+            move = None
+            for dirs in (coord, diag):
+                best = here - POLISH_TIE
+                for d in dirs:
+                    m = merit(tuple(n + step * d))
+                    if m < best:
+                        best, move = m - POLISH_TIE, d
+                if move is not None:
+                    break
+            if move is None:
+                break
+            n = n + step * move
+    return n.astype(float) * fine * unit
+
+
+MAX_MOVES = 400         # moves at one lattice step (a bound on the search, never reached)
 
 
 def comfort_gains(cfg: VehicleConfig, opts: DesignOptions, model) -> tuple[np.ndarray, np.ndarray]:
@@ -241,7 +348,7 @@ def _feedback_designs(cfg: VehicleConfig, opts: DesignOptions
     take about 2 s, which a process building the same calibration again (a campaign worker,
     a test module, the fault campaign) would otherwise repeat."""
     model = linear_model(cfg.vehicle, GRADE_GQ_M3["C"], NOMINAL_SPEED_MPS)
-    k_safety = safety_gain(model, opts).K
+    k_safety = grid.snap(safety_gain(model, opts).K)
     k_comfort, bp_scale = comfort_gains(cfg, opts, model)
     return _read_only(k_safety), _read_only(k_comfort), _read_only(bp_scale)
 
@@ -252,7 +359,7 @@ def _tuned_gain(cfg: VehicleConfig, opts: DesignOptions) -> np.ndarray:
     result = tune(cfg, 0, opts=opts)
     if not result["feasible"]:
         raise ConfigError(f"{cfg.source}: GA-LQR found no gains meeting Eq. (44) with margin")
-    return _read_only(result["K"])
+    return _read_only(grid.snap(np.asarray(result["K"], dtype=float)))
 
 
 def _read_only(a) -> np.ndarray:

@@ -38,8 +38,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm, solve_discrete_are, solve_discrete_lyapunov
-
+from calib import exact, grid
 from calib.iso8608 import GRADE_GQ_M3, road_intensity_per_mps
 from calib.model import filter_continuous, filter_discrete, van_loan_integral, zoh_input
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
@@ -99,8 +98,8 @@ class Generator:
 
 def _cov_response(a_e: np.ndarray, H: np.ndarray, b: np.ndarray, d: np.ndarray) -> np.ndarray:
     """The innovation covariance of e+ = a_e e + b w, nu = H e + d w for unit white w."""
-    P = solve_discrete_lyapunov(a_e, np.outer(b, b))
-    return H @ P @ H.T + np.outer(d, d)
+    P = exact.solve_stein(a_e, np.outer(b, b))
+    return exact.product(H, P, H.T) + np.outer(d, d)
 
 
 def check_options(opts: DesignOptions) -> None:
@@ -150,12 +149,11 @@ def generators(cfg: VehicleConfig, opts: DesignOptions,
             # the force from the measured current: its noise enters the measurements through D
             r0 = np.diag([sig2[c] for c in reads]) + np.outer(D, D) * kf ** 2 * cur_var
         Q = design_q * q_unit + q_fixed
-        P = solve_discrete_are(phi.T, H.T, Q, r0)
-        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + r0)
-        a_e = phi @ (np.eye(phi.shape[0]) - K @ H)
+        K = grid.snap(exact.dare_filter(phi, H, Q, r0)[1])
+        a_e = exact.closed_loop(phi, K, H)
         S_road = _cov_lyap(a_e, H, q_unit)
-        S_noise = _cov_lyap(a_e, H, q_fixed + phi @ K @ r0 @ K.T @ phi.T) + r0
-        S_force = _cov_response(a_e, H, gamma_f - phi @ K @ D_f, D_f)
+        S_noise = _cov_lyap(a_e, H, _plus(q_fixed, exact.matmul(phi, K, r0, K.T, phi.T))) + r0
+        S_force = _cov_response(a_e, H, _plus(gamma_f, -exact.matmul(phi, K, D_f)), D_f)
         g = Generator(blind=blind, reads=reads, phi=phi, gamma=gamma, gamma_force=gamma_f,
                       H=H, D=D, D_force=D_f, K=K, r0=r0, q_unit=q_unit, q_fixed=q_fixed,
                       S_road=S_road, S_noise=S_noise, S_force=S_force, force_per_amp=kf)
@@ -174,16 +172,16 @@ def _open(g: Generator, phi5, gamma5, q_unit5, design_q: float) -> Generator:
     relative velocity, and with it the filter blind to WA sat above its level (1.1-1.2
     against 1.163) in fault-free passive driving."""
     H = g.H[:, :5]
-    P = solve_discrete_are(phi5.T, H.T, design_q * q_unit5, g.r0)
-    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + g.r0)
-    a_e = phi5 @ (np.eye(5) - K @ H)
+    K = grid.snap(exact.dare_filter(phi5, H, design_q * q_unit5, g.r0)[1])
+    a_e = exact.closed_loop(phi5, K, H)
     zero = np.zeros((5, 5))
     return Generator(
         blind=g.blind, reads=g.reads, phi=phi5, gamma=np.zeros(5), gamma_force=gamma5,
         H=H, D=np.zeros(len(g.reads)), D_force=g.D_force, K=K, r0=g.r0, q_unit=q_unit5,
         q_fixed=zero, S_road=_cov_lyap(a_e, H, q_unit5),
-        S_noise=_cov_lyap(a_e, H, phi5 @ K @ g.r0 @ K.T @ phi5.T) + g.r0,
-        S_force=_cov_response(a_e, H, gamma5 - phi5 @ K @ g.D_force, g.D_force),
+        S_noise=_cov_lyap(a_e, H, exact.product(phi5, K, g.r0, K.T, phi5.T)) + g.r0,
+        S_force=_cov_response(a_e, H, _plus(gamma5, -exact.matmul(phi5, K, g.D_force)),
+                              g.D_force),
         force_per_amp=g.force_per_amp)
 
 
@@ -211,7 +209,7 @@ def _winding_model(cfg: VehicleConfig, opts: DesignOptions, A5: np.ndarray, B5: 
     n = A.shape[0]
     B = np.zeros(n)
     B[5] = 1.0 / cfg.actuator.winding_inductance_h
-    phi = expm(A * dt)
+    phi = exact.expm(A * dt)
     gamma = zoh_input(A, B, dt)
     gamma_f = zoh_input(A, np.append(B5, [0.0, 0.0]), dt)
     H = np.array([A[0], [0, 0, 1.0, -1.0, 0, 0, 0], A[1]])
@@ -234,12 +232,17 @@ def _open_phi(cfg: VehicleConfig, opts: DesignOptions) -> np.ndarray:
     without the actuator's force."""
     A = winding_continuous(cfg, *filter_continuous(cfg))
     A[5, :] = 0.0
-    return expm(A * opts.dt_s)
+    return exact.expm(A * opts.dt_s)
 
 
 def _cov_lyap(a_e: np.ndarray, H: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    P = solve_discrete_lyapunov(a_e, Q)
-    return H @ P @ H.T
+    P = exact.solve_stein(a_e, Q)
+    return exact.product(H, P, H.T)
+
+
+def _plus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a + b (b in extended precision), float64."""
+    return np.asarray(exact.ld(a) + b, dtype=float)
 
 
 def road_intensity(cfg: VehicleConfig, opts: DesignOptions, grade: str, speed: float) -> float:

@@ -7,6 +7,7 @@ tanh table. Design-time: the firmware receives the finished tables (and C the sa
 from __future__ import annotations
 
 import dataclasses
+import math
 import pickle
 
 import numpy as np
@@ -68,7 +69,8 @@ def gain_formats(p: EcuParams) -> tuple:
 
 def tanh_lut() -> tuple:
     x = np.arange(TANH_N + 1) / float(1 << TANH_STEP_BITS)
-    return tuple(to_fixed(float(t), F_TANH) for t in np.tanh(x))
+    # (math.tanh, not np.tanh: numpy's is vectorised differently with and without AVX-512)
+    return tuple(to_fixed(math.tanh(float(t)), F_TANH) for t in x)
 
 
 def build_tables(p: EcuParams) -> FxTables:

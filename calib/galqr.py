@@ -29,6 +29,7 @@ from deap.tools import crossover as deap_crossover
 from deap.tools import mutation as deap_mutation
 from deap.tools import selection as deap_selection
 
+from calib import grid
 from calib.iso8608 import GRADE_GQ_M3
 from calib.linear import RelativeFamily
 from calib.model import linear_model, window_bound
@@ -112,7 +113,10 @@ def _tune(cfg, bound, model, fam, rng, seed, population, generations) -> dict:
             _, ratios = fam.evaluate(10.0 ** np.asarray(ind))
         except ValueError:
             return (math.inf,)
-        return (float(np.sum(ratios) + PENALTY * np.sum(np.maximum(ratios - bound, 0.0))),)
+        # (on the grid: two individuals whose scores differ by rounding alone tie exactly,
+        # and DEAP's tournaments and hall of fame break ties by order, the same on every host)
+        return (grid.snap(float(np.sum(ratios)
+                                + PENALTY * np.sum(np.maximum(ratios - bound, 0.0)))),)
 
     def clamp(ind):
         for i, g in enumerate(ind):

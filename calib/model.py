@@ -13,7 +13,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg import expm, solve_continuous_lyapunov
+from scipy.linalg import solve_continuous_lyapunov
+
+from calib import exact
 
 from calib.errors import ConfigError
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_noise_gain
@@ -208,9 +210,9 @@ def van_loan_integral(M: np.ndarray, Q: np.ndarray, dt: float) -> np.ndarray:
     big[:n, :n] = -M.T
     big[:n, n:] = Q
     big[n:, n:] = M
-    E = expm(big * dt)
-    W = E[n:, n:].T @ E[:n, n:]
-    return 0.5 * (W + W.T)
+    E = exact.expm(big * dt)
+    W = exact.matmul(E[n:, n:].T, E[:n, n:])
+    return np.asarray((W + W.T) / exact.LD(2.0), dtype=float)
 
 
 def paper_thresholds(vp: VehicleParams, convention: str = "iso",
@@ -273,7 +275,7 @@ def zoh_input(A: np.ndarray, B: np.ndarray, dt: float) -> np.ndarray:
     M = np.zeros((n + 1, n + 1))
     M[:n, :n] = A
     M[:n, n] = B
-    return np.ascontiguousarray(expm(M * dt)[:n, n])
+    return np.ascontiguousarray(exact.expm(M * dt)[:n, n])
 
 
 def filter_continuous(cfg: VehicleConfig, speed: float = NOMINAL_SPEED_MPS
@@ -299,4 +301,5 @@ def filter_discrete(cfg: VehicleConfig, dt: float):
     discrete process noise per unit intensity of the road's white noise."""
     A, B = filter_continuous(cfg)
     e5 = np.eye(5)[4]
-    return A, B, expm(A * dt), zoh_input(A, B, dt), van_loan_integral(A.T, np.outer(e5, e5), dt)
+    return (A, B, exact.expm(A * dt), zoh_input(A, B, dt),
+            van_loan_integral(A.T, np.outer(e5, e5), dt))

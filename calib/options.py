@@ -121,10 +121,11 @@ class DesignOptions:
     safety_bound_steps: int = 6
     safety_bound_tol: float = 5e-4
     # comfort: the network's K_i range (N s/m) where the design wants no skyhook; the range
-    # the design's SWS bound is searched in; the SLSQP iterations of the law's polish
+    # the design's SWS bound is searched in; the lattice of the law's polish (each gain a
+    # multiple of 2^-bits of its power of two: calib.control_design.lattice_descent)
     comfort_ki_floor: float = 1.0
     comfort_bound_range: tuple = (0.5, 1.2)
-    comfort_polish_iter: int = 60
+    comfort_polish_bits: int = 16
     # model-based fault detection (firmware.diag.fdi, docs/diagnostics.md): the false-alarm
     # probability per test window; the innovation tests' EWMA window (ticks), the actuator
     # test's; a failed actuator test holds the bridge open this long, then retries; BA or WA

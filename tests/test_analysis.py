@@ -223,13 +223,15 @@ def test_a_process_designs_each_vehicle_once_and_nobody_changes_the_design(monke
     """calib.control_design keeps the feedback designs per process: a second build of the same
     vehicle and options gives equal gains without designing again, the kept arrays are
     read-only, and other options design anew. (The design cache on disk off: it would serve
-    both builds, each a fresh copy; tests/test_cache.py has its own tests.)"""
+    both builds, each a fresh copy; tests/test_cache.py has its own tests; and the committed
+    calibration, which would serve them without designing.)"""
     import dataclasses
 
-    from calib import cache, control_design, ecu_params
+    from calib import cache, control_design, dataset, ecu_params
     from calib.options import DesignOptions
 
     monkeypatch.setenv(cache.ENV_OFF, "1")
+    monkeypatch.setenv(dataset.ENV_OFF, "1")
     control_design._feedback_designs.cache_clear()
     first = ecu_params.build(SUV, DesignOptions())
     again = ecu_params.build(SUV, DesignOptions())

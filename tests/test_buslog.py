@@ -100,7 +100,8 @@ def test_mf4_decodes_with_the_dbc_in_asammdf(run):
 
 def test_can_utils_log2asc_reads_the_candump_log(run, tmp_path):
     if shutil.which("log2asc") is None:
-        pytest.skip("can-utils' log2asc is not installed (.ci/run installs it)")
+        pytest.skip("Debian's can-utils (log2asc) is not installed (as root: apt-get install "
+                    "can-utils; .ci/run installs it)")
     out, rep = run
     asc = tmp_path / "l2a.asc"
     subprocess.run(["log2asc", "-I", str(out / "bus.log"), "-O", str(asc), SIL_CHANNEL],

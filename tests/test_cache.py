@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from calib import cache
+from calib import cache, dataset
 from calib.ecu_params import build
 from calib.fx_tables import build_tables
 from calib.options import DesignOptions
@@ -27,6 +27,7 @@ def cache_dir(tmp_path, monkeypatch):
     d = tmp_path / "cache"
     monkeypatch.setenv(cache.ENV_DIR, str(d))
     monkeypatch.delenv(cache.ENV_OFF, raising=False)
+    monkeypatch.setenv(dataset.ENV_OFF, "1")    # (designed, not the committed calibration)
     return d
 
 
@@ -87,6 +88,7 @@ def test_an_unwritable_cache_warns_and_computes(tmp_path, monkeypatch, capsys):
     blocker.write_text("a file where the cache directory would be")
     monkeypatch.setenv(cache.ENV_DIR, str(blocker / "cache"))
     monkeypatch.delenv(cache.ENV_OFF, raising=False)
+    monkeypatch.setenv(dataset.ENV_OFF, "1")
     p = build(default_vehicle())
     assert p.dt_s > 0
     err = capsys.readouterr().err

@@ -14,8 +14,9 @@ from tools import pil_build as pb
 from tools import pil_mix
 
 HAVE_TOOLS = all(shutil.which(t) for t in ("arm-none-eabi-gcc", "qemu-system-arm"))
-needs_tools = pytest.mark.skipif(not HAVE_TOOLS, reason="make pil-setup installs the ARM "
-                                 "toolchain and QEMU (.ci/run does)")
+needs_tools = pytest.mark.skipif(not HAVE_TOOLS, reason="Debian's gcc-arm-none-eabi, "
+                                 "picolibc-arm-none-eabi and qemu-system-arm are not installed "
+                                 "(as root: make pil-setup; .ci/run installs them)")
 
 
 @needs_tools

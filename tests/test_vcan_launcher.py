@@ -42,7 +42,8 @@ def test_the_launcher_records_with_candump(tmp_path):
     log = tmp_path / "c.log"
     proc = launch("--candump", str(log), "--", "cansend", "vcan0", "123#DEADBEEF")
     if shutil.which("cansend") is None:
-        pytest.skip("can-utils not installed")
+        pytest.skip("Debian's can-utils (cansend) is not installed (as root: make vcan-setup; "
+                    ".ci/run installs it)")
     assert proc.returncode == 0, proc.stderr
     assert [(f[1], f[2]) for f in read_log(log)] == [(0x123, bytes.fromhex("DEADBEEF"))]
 

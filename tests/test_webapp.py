@@ -30,8 +30,8 @@ pytestmark = pytest.mark.hil
 def _browser():
     chromium, driver = shutil.which("chromium"), shutil.which("chromedriver")
     if not (chromium and driver):
-        pytest.skip("Debian's chromium and chromium-driver are not installed (.ci/run "
-                    "installs them)")
+        pytest.skip("Debian's chromium and chromium-driver are not installed (as root: "
+                    "apt-get install chromium chromium-driver; .ci/run installs them)")
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 

@@ -32,8 +32,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import expm
 
+from calib.exact import expm
 from calib.model import mechanics, van_loan_integral
 from calib.vehicle import VehicleConfig
 from hil.kernels import plant as kern
