@@ -89,21 +89,27 @@ def test_the_matrix_expands_and_case_ids_are_stable(tmp_path):
 
 
 @pytest.mark.slow
-def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_path):
-    """Two workers started as separate processes on 127.0.0.1 under a dask scheduler, and
-    a LocalCluster: the same rows; each case's trace is the one a plain ``hil sim`` (or,
+def test_local_and_a_real_cluster_give_the_same_rows_each_a_plain_hil_sim(tmp_path,
+                                                                          monkeypatch):
+    """Two workers started as separate processes on 127.0.0.1 under a dask scheduler, with
+    other BLAS kernels (``Prescott``) and no design cache, and a LocalCluster: the same rows,
+    each car's design hash among them; each case's trace is the one a plain ``hil sim`` (or,
     for a vehicle variant, ``hil campaign-case``) gives."""
     path = write(tmp_path)
     local = hil("campaign", str(path), "--workers", "2", "--out", str(tmp_path / "local"),
                 "--json")
     assert local.returncode in (0, 1), local.stderr[-2000:]
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Prescott")
+    monkeypatch.setenv("SUSPENSION_NO_CACHE", "1")
     with cp.SeparateCluster(2, tmp_path) as cluster:
         remote = hil("campaign", str(path), "--scheduler", cluster.url, "--out",
                      str(tmp_path / "remote"), "--json")
+    monkeypatch.undo()
     assert remote.returncode == local.returncode, remote.stderr[-2000:]
     a, b = rows(tmp_path / "local" / "campaign.sqlite"), rows(tmp_path / "remote" /
                                                               "campaign.sqlite")
     assert a == b and len(a["cases"]) == 4
+    assert all(len(row["design_sha256"]) == 64 for row in a["cases"].values())
     for row in a["cases"].values():
         if row["command"].startswith("python -m hil sim"):
             argv = row["command"].split()[4:-2]             # (without --key-file KEY)
@@ -590,3 +596,26 @@ def test_the_tolerance_tool_brackets_where_a_drive_starts_to_fail(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "tools.tolerance", "--vehicle", str(bad)],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+
+
+def test_a_car_driven_with_two_calibrations_fails_the_report():
+    """split_designs: the cases of one calibration car that drove with more than one
+    calibration image (a worker that designed other bytes) are counted; one image per car, or
+    none recorded (an error row), counts nothing."""
+    from hil.validate.campaign.report import split_designs
+
+    camp = cp.load(write_tmp_campaign())
+    a = camp.cases[0]
+    b = next(c for c in camp.cases[1:] if cp.calibration_key(c) == cp.calibration_key(a))
+    assert b["seed"] != a["seed"]
+    one, two = "1" * 64, "2" * 64
+    as_rows = lambda *pairs: [(json.dumps(c), h) for c, h in pairs]  # noqa: E731
+    assert split_designs(as_rows((a, one), (b, one))) == 0
+    assert split_designs(as_rows((a, one), (b, ""))) == 0
+    assert split_designs(as_rows((a, one), (b, two))) == 2
+
+
+def write_tmp_campaign() -> Path:
+    import tempfile
+
+    return write(Path(tempfile.mkdtemp()))

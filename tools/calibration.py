@@ -2,6 +2,7 @@
 write its data file, or compare it with the committed one.
 
     python -m tools.calibration [--check] [--tolerance REL] [--json]
+    python -m tools.calibration --campaign FILE [--json]
 
 Each vehicle file of ``hil/vehicles/`` (default design options, its shipped gains file) is
 designed afresh (never from its data file; from the design cache where an entry is there, which
@@ -12,6 +13,10 @@ relative to the largest magnitude of its array) and exits 1 when a data file is 
 stale (other design inputs) or a value moved by more than ``--tolerance`` (default 1e-9:
 ten times the calibration's grid, ``calib.grid``); ``identical`` in ``--json`` says whether
 the calibration images are the same bytes.
+
+``--campaign FILE`` designs each calibration car of a campaign as its driver does
+(``hil.validate.campaign.design``, one per ``calibration_key``) and lists the SHA-256 of each
+image: two hosts (or two ``OPENBLAS_CORETYPE``s) compare theirs line by line.
 """
 
 from __future__ import annotations
@@ -111,10 +116,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tolerance", type=float, default=TOLERANCE, metavar="REL",
                     help=f"largest change, relative to its array's largest magnitude "
                          f"(default {TOLERANCE:g})")
+    ap.add_argument("--campaign", metavar="FILE",
+                    help="list the design hash of each calibration car of this campaign")
     add_json_argument(ap)
     args = ap.parse_args(argv)
     if not (args.tolerance >= 0.0):
         fail(f"--tolerance must be a number >= 0, got {args.tolerance}")
+    if args.campaign:
+        return campaign_designs(args.campaign, args.json)
     os.environ[dataset.ENV_OFF] = "1"           # (a fresh design, never the data it checks)
     from calib.errors import ConfigError
 
@@ -155,6 +164,31 @@ def main(argv: list[str] | None = None) -> int:
               "identical": all(r["state"] == "identical" for r in rows)}
     emit(result, args.json, _render)
     return 1 if args.check and bad else 0
+
+
+def campaign_designs(path: str, as_json: bool) -> int:
+    """Each calibration car's design hash; exit 1 when a car has no calibration."""
+    from calib.errors import ConfigError
+    from hil.validate import campaign
+
+    try:
+        camp = campaign.load(path)
+    except ConfigError as exc:
+        fail(str(exc))
+    cars: dict[str, dict] = {}
+    for case in camp.cases:
+        key = campaign.calibration_key(case)
+        if key in cars:
+            continue
+        p = campaign.design(case)
+        cars[key] = {"car": campaign.spec.label(case["vehicle"]), "noise": case["noise"],
+                     "design_sha256": dataset.image_sha256(p) if not isinstance(p, str) else "",
+                     "error": p if isinstance(p, str) else None}
+    rows = list(cars.values())
+    emit({"campaign": camp.name, "cars": rows}, as_json,
+         lambda r: [print(f"{c['design_sha256'] or 'no calibration: ' + c['error']}  "
+                          f"{c['car']} (noise x{c['noise']:g})") for c in r["cars"]])
+    return 1 if any(c["error"] for c in rows) else 0
 
 
 def _render(result: dict) -> None:

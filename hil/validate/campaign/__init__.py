@@ -36,15 +36,17 @@ The campaign file (every key but ``routes`` optional)::
     max_gap = 0.03                          # each mean ratio at most this above its limit
 """
 
-from hil.validate.campaign.case import (DRIVEN_SHARE, MIXED, command, driven_mode, judge_segment,
-                                        run_case, software_version, source_sha256)
+from hil.validate.campaign.case import (DRIVEN_SHARE, MIXED, calibration_key, command, design,
+                                        driven_mode, judge_segment, run_case, software_version,
+                                        source_sha256)
 from hil.validate.campaign.cli import case_main, main, report_main
 from hil.validate.campaign.cluster import SeparateCluster, run
 from hil.validate.campaign.report import render, report, report_figure
 from hil.validate.campaign.spec import Campaign, case_id, load, route_of, vehicle_config
 from hil.validate.campaign.store import SCHEMA, done_ids, open_db, store
 
-__all__ = ["Campaign", "DRIVEN_SHARE", "MIXED", "SCHEMA", "SeparateCluster", "case_id",
-           "case_main", "command", "done_ids", "driven_mode", "judge_segment", "load", "main",
+__all__ = ["Campaign", "DRIVEN_SHARE", "MIXED", "SCHEMA", "SeparateCluster", "calibration_key",
+           "case_id", "case_main", "command", "design", "done_ids", "driven_mode",
+           "judge_segment", "load", "main",
            "open_db", "render", "report", "report_figure", "report_main", "route_of", "run",
            "run_case", "software_version", "source_sha256", "store", "vehicle_config"]

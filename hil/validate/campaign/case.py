@@ -82,15 +82,43 @@ def software_version() -> str:
 CASE_KEY = bytes(range(16))
 
 
-def run_case(case: dict, acceptance: bool | str = True) -> dict:
-    """Run one case (on a worker): the row of ``cases`` and the rows of ``segments``. A case
-    that raises is a result too (verdict ``error``, the exception in ``failed``): one bad
-    case does not stop a campaign."""
+def calibration_key(case: dict) -> str:
+    """What a case's calibration depends on (its calibration car and the sensor noise it is
+    designed for), as text: the cases of one key drive with one design."""
+    import json
+
+    spec = case["vehicle"]
+    nominal = spec.get("calibration") == "nominal"
+    return json.dumps({"vehicle": base_spec(spec) if nominal else spec,
+                       "noise": 1.0 if nominal else case["noise"]}, sort_keys=True)
+
+
+def design(case: dict):
+    """The calibration a case drives with (``firmware.params.EcuParams``), or the reason
+    there is none (a str): computed once per ``calibration_key`` by the campaign's driver
+    and carried to every case of that car, so every worker drives with the same bytes."""
+    from hil.nodes import sil
+
+    try:
+        cfg = vehicle_config(case["vehicle"], case["noise"])
+        return sil.ecu_params(calibration_car(case["vehicle"], cfg), case["mode"])
+    except Exception as exc:  # noqa: BLE001 - the cases of this car record it
+        return f"{type(exc).__name__}: {exc}"
+
+
+def run_case(case: dict, acceptance: bool | str = True, params=None) -> dict:
+    """Run one case (on a worker): the row of ``cases`` and the rows of ``segments``.
+    ``params``: the calibration (``design``), else designed here. A case that raises is a
+    result too (verdict ``error``, the exception in ``failed``): one bad case does not stop
+    a campaign."""
     t0 = time.perf_counter()
     try:
-        return _run_case(case, acceptance, t0)
+        if isinstance(params, str):
+            raise ValueError(params)
+        return _run_case(case, acceptance, t0, params)
     except Exception as exc:  # noqa: BLE001 - recorded with the case
         return {"case_id": case_id(case), "case": case, "calibration_sha256": "",
+                "design_sha256": "",
                 "software_version": _version_or_blank(), "trace_sha256": "",
                 "verdict": "error",
                 "failed": [f"{type(exc).__name__}: {exc}"],
@@ -105,12 +133,16 @@ def _version_or_blank() -> str:
         return ""
 
 
-def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
+def _run_case(case: dict, acceptance: bool | str, t0: float, params=None) -> dict:
+    from calib.dataset import image_sha256
     from hil.nodes import sil
 
     cfg = vehicle_config(case["vehicle"], case["noise"])
     route = route_of(case["route"])
-    params = sil.ecu_params(calibration_car(case["vehicle"], cfg), case["mode"])
+    if params is None:
+        params = design(case)
+        if isinstance(params, str):
+            raise ValueError(params)
     report, _ = sil.run(cfg, route, case["mode"], case["seed"], params=params,
                         duration_s=case["duration_s"], fixed_point=case["fixed_point"],
                         key=CASE_KEY)
@@ -129,6 +161,7 @@ def _run_case(case: dict, acceptance: bool | str, t0: float) -> dict:
         segments.append(row)
     return {"case_id": case_id(case), "case": case,
             "calibration_sha256": bytes(params.calibration_sha256).hex(),
+            "design_sha256": image_sha256(params),
             "software_version": software_version(),
             "trace_sha256": report["trace_sha256"],
             "verdict": "fail" if failed else "pass", "failed": failed,

@@ -3,6 +3,7 @@ scheduler with its workers (``SeparateCluster``)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import socket
@@ -12,7 +13,7 @@ from pathlib import Path
 from typing import Optional
 
 from calib.errors import ConfigError
-from hil.validate.campaign.case import run_case, software_version
+from hil.validate.campaign.case import calibration_key, design, run_case, software_version
 from hil.validate.campaign.spec import Campaign, case_id, label
 from hil.validate.campaign.store import done_ids, open_db, store
 
@@ -54,7 +55,15 @@ def run(campaign: Campaign, db_path: Path, scheduler: str = "local",
     else:
         client = Client(scheduler, timeout=30)
     try:
-        futures = [client.submit(run_case, c, campaign.acceptance,
+        # one design per calibration car, on one worker, carried to each of its cases
+        designs = {}
+        for c in todo:
+            k = calibration_key(c)
+            if k not in designs:
+                tag = hashlib.sha256(k.encode()).hexdigest()[:16]
+                designs[k] = client.submit(design, c, key=f"design-{tag}", pure=False,
+                                           retries=2)
+        futures = [client.submit(run_case, c, campaign.acceptance, designs[calibration_key(c)],
                                  key=f"case-{case_id(c)}", pure=False, retries=2)
                    for c in todo]
         for i, fut in enumerate(as_completed(futures), 1):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from calib.errors import ConfigError
 from hil.validate.campaign import space_report
-from hil.validate.campaign.case import MIXED
+from hil.validate.campaign.case import MIXED, calibration_key
 from hil.validate.campaign.spec import label
 from hil.validate.campaign.store import check_layout
 
@@ -27,7 +27,7 @@ def report(db_path: Path) -> dict:
     scatter from the model (``calib.linear.drive_scatter``, known before the run); the
     segments driven in more than one mode (``MIXED``), with their share under the
     road-holding override. The verdict: every case passes and every mean is ok."""
-    cases, versions, segs, mixed, meta, infeasible = _read(db_path)
+    cases, versions, segs, mixed, meta, infeasible, designs = _read(db_path)
     name = meta.get("campaign", "?")
     max_gap = json.loads(meta.get("max_gap", "null"))
     criteria: dict[str, int] = {}
@@ -46,6 +46,9 @@ def report(db_path: Path) -> dict:
                  "groups)"] = over
     if len(versions) > 1:
         criteria["one software version (cases of different code)"] = len(cases)
+    split = split_designs(designs)
+    if split:
+        criteria["one design per car (cases of one car drove other calibrations)"] = split
     held: dict[tuple, list] = {}
     for m in mixed:
         held.setdefault((_name(m[0], m[1], m[5]),
@@ -60,6 +63,7 @@ def report(db_path: Path) -> dict:
             "pass_rate_ci95": list(space_report.proportion_ci(passed, len(cases))),
             "wall_s": sum(c[8] for c in cases),
             "software_versions": versions,
+            "designs": len({h for _, h in designs if h}), "split_designs": split,
             "failures_by_criterion": dict(sorted(criteria.items(), key=lambda kv: -kv[1])),
             "ratios": rows,
             "mixed": [{"vehicle": v, "segment": seg, "n": len(shares),
@@ -76,7 +80,22 @@ def report(db_path: Path) -> dict:
                       for s in worst],
             "space": space,
             "verdict": "pass" if cases and passed == len(cases) and not over
-            and len(versions) == 1 else "fail"}
+            and len(versions) == 1 and not split else "fail"}
+
+
+def split_designs(designs: list) -> int:
+    """The cases whose calibration car (``case.calibration_key``) drove with more than one
+    calibration image (``design_sha256``) in the database: 0 when every worker drove each car
+    with the same bytes."""
+    by_car: dict[str, set] = {}
+    count: dict[str, int] = {}
+    for case_json, sha in designs:
+        if not sha:
+            continue
+        key = calibration_key(json.loads(case_json))
+        by_car.setdefault(key, set()).add(sha)
+        count[key] = count.get(key, 0) + 1
+    return sum(count[k] for k, hashes in by_car.items() if len(hashes) > 1)
 
 
 def _read(db_path: Path) -> tuple:
@@ -101,6 +120,7 @@ def _read(db_path: Path) -> tuple:
                            "c.case_json, '$.vehicle.sample') FROM segments s "
                            "JOIN cases c USING (case_id) WHERE s.mode = ?", (MIXED,)).fetchall()
         meta = dict(db.execute("SELECT key, value FROM meta"))
+        designs = db.execute("SELECT case_json, design_sha256 FROM cases").fetchall()
         try:
             infeasible = db.execute("SELECT vehicle, reason FROM infeasible ORDER BY vehicle"
                                     ).fetchall()
@@ -108,7 +128,7 @@ def _read(db_path: Path) -> tuple:
             infeasible = []
     finally:
         db.close()
-    return cases, versions, segs, mixed, meta, infeasible
+    return cases, versions, segs, mixed, meta, infeasible, designs
 
 
 def _name(vehicle: str, factors: str, sample) -> str:

@@ -19,6 +19,7 @@ CREATE TABLE IF NOT EXISTS cases (
     route TEXT NOT NULL, seed INTEGER NOT NULL, vehicle TEXT NOT NULL, factors TEXT NOT NULL,
     mode TEXT NOT NULL, fixed_point INTEGER NOT NULL, noise REAL NOT NULL, duration_s REAL,
     software_version TEXT NOT NULL, calibration_sha256 TEXT NOT NULL,
+    design_sha256 TEXT NOT NULL,   -- SHA-256 of the calibration image the case drove with
     trace_sha256 TEXT NOT NULL, verdict TEXT NOT NULL, failed TEXT NOT NULL,
     wall_s REAL NOT NULL, worker TEXT NOT NULL, command TEXT NOT NULL, case_json TEXT NOT NULL
 );
@@ -59,6 +60,10 @@ def check_layout(db: sqlite3.Connection, path) -> None:
     if "sigma" not in columns:
         raise ConfigError(f"{path}: a campaign database of an older layout (no bounded "
                           "limits): run its campaign again into a new --out")
+    columns = {r[1] for r in db.execute("PRAGMA table_info(cases)")}
+    if "design_sha256" not in columns:
+        raise ConfigError(f"{path}: a campaign database of an older layout (no design "
+                          "hashes): run its campaign again into a new --out")
 
 
 def done_ids(db: sqlite3.Connection) -> set[str]:
@@ -69,11 +74,13 @@ def store(db: sqlite3.Connection, campaign: str, res: dict, db_path: str = "DB")
     """One finished case, in one transaction (a case is in the database whole or not)."""
     c = res["case"]
     with db:
-        db.execute("INSERT OR IGNORE INTO cases VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+        db.execute("INSERT OR IGNORE INTO cases VALUES "
+                   "(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                    (res["case_id"], campaign, c["route"]["name"], c["seed"],
                     c["vehicle"]["name"], json.dumps(c["vehicle"]["factors"], sort_keys=True),
                     c["mode"], int(c["fixed_point"]), c["noise"], c["duration_s"],
-                    res["software_version"], res["calibration_sha256"], res["trace_sha256"],
+                    res["software_version"], res["calibration_sha256"],
+                    res.get("design_sha256", ""), res["trace_sha256"],
                     res["verdict"], json.dumps(res["failed"]), res["wall_s"], res["worker"],
                     command(c, db_path), json.dumps(c, sort_keys=True)))
         for s in res["segments"]:
