@@ -21,7 +21,7 @@ from calib import fdi_bank
 from calib.fdi_design import fdi_params
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_intensity_per_mps
 from calib.model import (filter_continuous, filter_discrete, linear_model, paper_thresholds,
-                         state_covariance, zoh_input)
+                         zoh_input)
 from calib.options import NOMINAL_SPEED_MPS, DesignOptions
 from calib.vehicle import VehicleConfig
 from firmware import params as fp

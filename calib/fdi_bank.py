@@ -38,6 +38,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from calib import exact, grid
 from calib.iso8608 import GRADE_GQ_M3, road_intensity_per_mps
 from calib.model import filter_continuous, filter_discrete, van_loan_integral, zoh_input

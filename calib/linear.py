@@ -147,7 +147,7 @@ def _dual_max(norm: Normalised, objective: int, bounds: tuple[float, float] = (1
 
 
 LAM_MIN = 1e-6              # the multipliers' lower bound (an inactive bound's multiplier)
-KKT_TOL = 1e-14             # the active bounds' residual the polish stops at (normalised variances)
+KKT_TOL = 1e-14             # the active bounds' residual the polish stops at (normalised)
 
 
 def _kkt_polish(norm: Normalised, objective: int, others: list[int], c: np.ndarray,

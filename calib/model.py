@@ -16,7 +16,6 @@ import numpy as np
 from scipy.linalg import solve_continuous_lyapunov
 
 from calib import exact
-
 from calib.errors import ConfigError
 from calib.iso8608 import DEFAULT_CUTOFF_N_PER_M, GRADE_GQ_M3, road_noise_gain
 from calib.options import NOMINAL_SPEED_MPS

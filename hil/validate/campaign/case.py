@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 import os
 import socket
 import time
@@ -85,8 +86,6 @@ CASE_KEY = bytes(range(16))
 def calibration_key(case: dict) -> str:
     """What a case's calibration depends on (its calibration car and the sensor noise it is
     designed for), as text: the cases of one key drive with one design."""
-    import json
-
     spec = case["vehicle"]
     nominal = spec.get("calibration") == "nominal"
     return json.dumps({"vehicle": base_spec(spec) if nominal else spec,
