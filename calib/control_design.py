@@ -315,7 +315,9 @@ def comfort_gains(cfg: VehicleConfig, opts: DesignOptions, model) -> tuple[np.nd
     learning step of K_i is e^2 dt > 0), so the state feedback is the design minus that
     skyhook. K_p, K_d scale with the sprung mass. Returns (k_comfort, bp_scale)."""
     vp = cfg.vehicle
-    total = comfort_law(cfg, opts, model)
+    # (on the grid: a lattice point already is; the LQR design, where the polish keeps it,
+    # carries its solves' rounding)
+    total = grid.snap(comfort_law(cfg, opts, model))
     r = opts.bp_scale_ratio
     ki = comfort_skyhook(total, opts)
     scale = np.array([r[0] * vp.sprung_mass_kg, ki, r[2] * vp.sprung_mass_kg])
