@@ -1,12 +1,11 @@
 """OpenBLAS set up before numpy loads: the same kernels on every x86-64 host, one thread.
 
 numpy and scipy call OpenBLAS, which picks its kernels for the CPU when the library loads
-(``Haswell`` for AVX2, ``SkylakeX`` for AVX-512, ...). The kernels sum in different orders,
-so the design computed on an AVX-512 host (the ECU calibration: discretised AKF model, LQR
-gains) differed from an AVX2 host's in the last bits: the committed C tables no longer
-matched the generator, and the C fixed-point path (built from the committed tables) parted
-from Python's by 1 LSB at tick 42417 of the full road section. With the kernels pinned to
-``Haswell`` wherever the CPU has AVX2 and FMA, both hosts give the same bytes.
+(``Haswell`` for AVX2, ``SkylakeX`` for AVX-512, ...). The kernels sum in different orders.
+The calibration no longer depends on them (``calib.exact``, ``calib.grid``, the committed
+data of ``calib.dataset``: docs/calibration.md, ``tests/test_kernels.py``); the pin to
+``Haswell`` wherever the CPU has AVX2 and FMA stays, so that what else calls BLAS does so
+alike on every such host.
 
 OpenBLAS reads ``OPENBLAS_CORETYPE`` when it loads, so :func:`pin` runs when ``hil`` is
 imported: ``tools`` and the test suite (``tests/conftest.py``) import ``hil`` first, and
