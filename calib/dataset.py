@@ -109,12 +109,11 @@ def _index() -> dict[str, Path]:
 
 @functools.lru_cache(maxsize=8)
 def _read(path: Path) -> fp.EcuParams:
-    with open(path, encoding="utf-8") as f:
-        doc = json.load(f)
+    doc = read(path)
     if doc.get("format") != FORMAT:
         raise ValueError(f"{path}: calibration data format {doc.get('format')}, "
                          f"this software reads {FORMAT}")
-    p = decode(doc["params"])
+    p = doc["params"]
     if image_sha256(p) != doc["image_sha256"]:
         raise ValueError(f"{path}: the calibration image's SHA-256 is not the one recorded "
                          f"(a damaged or hand-edited file: python -m tools.calibration)")

@@ -1,4 +1,4 @@
-"""The calibration's grid: every number of a design rounded to 32 significant bits.
+"""The calibration's grid: what a solver returns into a design rounded to 32 significant bits.
 
 A design step that is solved to its true value still carries the host's rounding in its last
 bits (about 1e-13 relative where a solve is ill-conditioned, ``calib.exact``). Rounded to a
@@ -13,8 +13,6 @@ float path or its Q-formats resolve.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 
@@ -44,15 +42,3 @@ def snap(a):
         return float(out)
     return np.ascontiguousarray(out, dtype=arr.dtype)
 
-
-def snap_tree(obj):
-    """A frozen dataclass tree with every float number and float array on the grid (each array
-    on its own grid; tuples element by element)."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: snap_tree(getattr(obj, f.name))
-                                           for f in dataclasses.fields(obj) if f.init})
-    if isinstance(obj, tuple):
-        return tuple(snap_tree(v) for v in obj)
-    if isinstance(obj, (float, np.ndarray)):
-        return snap(obj)
-    return obj

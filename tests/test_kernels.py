@@ -25,14 +25,13 @@ from calib.blas import _cpu_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 # the kernels and the CPU flags each needs
-CORES = {"Prescott": {"sse3"}, "Sandybridge": {"avx"}, "Haswell": {"avx2", "fma"}}
+CORES = {"Prescott": {"pni"}, "Sandybridge": {"avx"}, "Haswell": {"avx2", "fma"}}   # (pni: SSE3)
 NO_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR"      # numpy's AVX-512 dispatch targets
 
 
 def variants() -> list[tuple[str, dict]]:
     flags = _cpu_flags()
-    out = [(core, {"OPENBLAS_CORETYPE": core}) for core, need in CORES.items()
-           if need <= flags or (core == "Prescott" and "pni" in flags)]
+    out = [(core, {"OPENBLAS_CORETYPE": core}) for core, need in CORES.items() if need <= flags]
     if "avx512f" in flags:
         out.append(("Haswell, numpy without AVX-512",
                     {"OPENBLAS_CORETYPE": "Haswell", "NPY_DISABLE_CPU_FEATURES": NO_AVX512}))

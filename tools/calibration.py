@@ -54,39 +54,26 @@ def leaves(obj, path: str = ""):
 
 
 def moved(old, new) -> list[dict]:
-    """Every value of ``new`` that differs from ``old``: path, flat index, both values and
-    the change relative to the largest magnitude of its array (inf where a value is not a
-    number or the shapes differ)."""
+    """Every value of ``new`` that differs from ``old`` (bit for bit: -0 is not +0): path,
+    flat index (None for a scalar), both values and the change relative to the largest
+    magnitude of its array (inf where a value is not a number or the shapes differ)."""
     out = []
     a_leaves, b_leaves = dict(leaves(old)), dict(leaves(new))
     for path in sorted(set(a_leaves) | set(b_leaves)):
         a, b = a_leaves.get(path), b_leaves.get(path)
-        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray) or isinstance(a, tuple):
-            a_arr, b_arr = np.asarray(a), np.asarray(b)
-            if a_arr.shape != b_arr.shape or a_arr.dtype.kind != b_arr.dtype.kind:
+        a_arr, b_arr = np.asarray(a), np.asarray(b)
+        if a_arr.shape != b_arr.shape or not {a_arr.dtype.kind, b_arr.dtype.kind} <= set("fiub"):
+            if a_arr.shape != b_arr.shape or not np.array_equal(a_arr, b_arr):
                 out.append({"path": path, "index": None, "committed": str(a), "fresh": str(b),
                             "change": float("inf")})
-                continue
-            if a_arr.dtype.kind not in "fiub":
-                if not np.array_equal(a_arr, b_arr):
-                    out.append({"path": path, "index": None, "committed": str(a),
-                                "fresh": str(b), "change": float("inf")})
-                continue
-            af, bf = a_arr.astype(float).ravel(), b_arr.astype(float).ravel()
-            scale = float(np.max(np.abs(af))) if af.size else 0.0
-            same = ((af == bf) & (np.signbit(af) == np.signbit(bf))) | (np.isnan(af) & np.isnan(bf))
-            for i in np.flatnonzero(~same):
-                out.append({"path": path, "index": int(i), "committed": float(af[i]),
-                            "fresh": float(bf[i]),
-                            "change": _change(af[i], bf[i], scale)})
-        elif (a != b or (isinstance(a, float) and isinstance(b, float)
-                         and np.signbit(a) != np.signbit(b))) and not (
-                isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b)):
-            numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                          for v in (a, b))
-            out.append({"path": path, "index": None,
-                        "committed": a if numeric else str(a), "fresh": b if numeric else str(b),
-                        "change": _change(a, b, abs(a)) if numeric else float("inf")})
+            continue
+        af, bf = a_arr.astype(float).ravel(), b_arr.astype(float).ravel()
+        scale = float(np.max(np.abs(af))) if af.size else 0.0
+        same = ((af == bf) & (np.signbit(af) == np.signbit(bf))) | (np.isnan(af) & np.isnan(bf))
+        for i in np.flatnonzero(~same):
+            out.append({"path": path, "index": int(i) if a_arr.ndim else None,
+                        "committed": a_arr.ravel()[i].item(), "fresh": b_arr.ravel()[i].item(),
+                        "change": _change(af[i], bf[i], scale)})
     return out
 
 
@@ -145,11 +132,11 @@ def main(argv: list[str] | None = None) -> int:
                 row["error"] = f"unreadable: {exc}"
         if old is None:
             row["state"] = "missing" if "error" not in row else "unreadable"
-        elif old.get("design_key") != key:
-            row["state"] = "stale"
-            row["moved"] = moved(old["params"], p)
         else:
             row["moved"] = moved(old["params"], p)
+        if old is not None and old.get("design_key") != key:
+            row["state"] = "stale"
+        elif old is not None:
             row["state"] = ("identical" if old.get("image_sha256") == row["image_sha256"]
                             and not row["moved"] else
                             "within" if all(m["change"] <= args.tolerance for m in row["moved"])
