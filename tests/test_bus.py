@@ -1,5 +1,9 @@
 """Transport: bus selection and the remote hub on 127.0.0.1 (this machine has no kernel CAN)."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import can
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -8,6 +12,7 @@ from hypothesis import strategies as st
 from hil.transport.bus import BusError, BusSpec, Hub, close_bus, kernel_has_vcan, resolve
 
 pytestmark = pytest.mark.hil
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_auto_selects_the_hub_without_kernel_can(monkeypatch):
@@ -67,6 +72,21 @@ def test_closing_the_bus_is_bounded_when_the_hub_is_stopped():
             os.kill(hub.proc.pid, signal.SIGCONT)
         bus = BusSpec("remote", hub.url).open()
         assert close_bus(bus) is True                    # a live hub: the normal handshake
+
+
+def test_closing_a_bus_whose_hub_is_gone_prints_nothing_at_exit():
+    """The hub gone first (a drive that ended): can_remote's shutdown raises (ENOTCONN);
+    ``close_bus`` swallows it and marks the bus shut, so python-can's ``__del__`` does not try
+    again and print a traceback after the tool's one line."""
+    code = ("import time\n"
+            "from hil.transport.bus import BusSpec, Hub, close_bus\n"
+            "with Hub() as hub:\n"
+            "    bus = BusSpec('remote', hub.url).open()\n"
+            "time.sleep(0.3)\n"
+            "assert close_bus(bus, timeout_s=2.0) and bus._is_shutdown\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=ROOT, timeout=60)
+    assert p.returncode == 0 and p.stderr == "", p.stderr
 
 
 def test_unreachable_bus_says_so():

@@ -127,10 +127,17 @@ def _diag(url, secret, *extra):
 @pytest.mark.xdist_group("hub_bench")       # (two benches at once overload 2 cores)
 def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
     out = tmp_path / "run"
+    # the drive is lockstep (faster than real time): 40 s of it leave the tester's calls,
+    # each a Python start, room on a loaded host; the clear follows the first ticking read
     with bench_run(ROOT, out, "--route", "full_road_section", "--mode", "comfort",
-                   "--seed", "2", "--duration", "25") as (run, url):
+                   "--seed", "2", "--duration", "40") as (run, url):
         secret = out / "hub.secret"
         assert secret.stat().st_mode & 0o777 == 0o600
+        # without the secret the tester is read-only: its request never reaches the ECU
+        p = subprocess.run([sys.executable, "-m", "hil", "diag", "-i", "remote", "-c", url,
+                            "--timeout", "1"], capture_output=True, text=True, cwd=ROOT,
+                           timeout=60)
+        assert p.returncode == 2 and "--secret-file" in p.stderr
         while run.poll() is None and not (out / "plant.log").exists():
             time.sleep(0.2)
         # read until the ECU ticks (the plant may still be warming up)
@@ -142,25 +149,23 @@ def test_the_udsoncan_tester_reads_a_running_bench(tmp_path):
             if doc["ecu"]["tick"] > 2000:
                 break
             time.sleep(0.5)
+        p = _diag(url, secret, "--clear")
+        assert p.returncode == 0, (f"tick {doc['ecu']['tick']} at the last read, the run "
+                                   f"{'still going' if run.poll() is None else 'ended'}: "
+                                   f"{p.stderr[-1500:]}")
+        assert json.loads(p.stdout)["cleared"]
         ecu = doc["ecu"]
         assert ecu["software_version"] == P.software_version
         assert ecu["calibration_sha256"] == P.calibration_sha256.hex()
         assert ecu["active_mode"] == "comfort" and ecu["fault_word"] == 0
         assert doc["dtcs"] == []                         # a fault-free drive
-        # without the secret the tester is read-only: its request never reaches the ECU
-        p = subprocess.run([sys.executable, "-m", "hil", "diag", "-i", "remote", "-c", url,
-                            "--timeout", "1"], capture_output=True, text=True, cwd=ROOT,
-                           timeout=60)
-        assert p.returncode == 2 and "--secret-file" in p.stderr
-        p = _diag(url, secret, "--clear")
-        assert p.returncode == 0 and json.loads(p.stdout)["cleared"]
         stdout, stderr = run.communicate(timeout=600)
     assert run.returncode == 0, stderr[-2000:]
     rep = json.loads(stdout)
     assert rep["verdict"] == "pass"
     # the tester changed nothing in the drive: the trace of the same case without it
     sim = subprocess.run([sys.executable, "-m", "hil", "sim", "--route", "full_road_section",
-                          "--mode", "comfort", "--seed", "2", "--duration", "25", "--json"],
+                          "--mode", "comfort", "--seed", "2", "--duration", "40", "--json"],
                          capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert json.loads(sim.stdout)["trace_sha256"] == rep["trace_sha256"]
     ecu_summary = json.loads((out / "ecu.json").read_text())

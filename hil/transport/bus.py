@@ -349,7 +349,10 @@ def close_bus(bus: Optional[can.BusABC], timeout_s: float = SHUTDOWN_S) -> bool:
         try:
             bus.shutdown()
         except Exception:  # noqa: BLE001 - the hub may already be gone
-            pass
+            try:    # (python-can's flag: else its __del__ retries and prints a traceback)
+                bus._is_shutdown = True
+            except AttributeError:
+                pass
 
     t = threading.Thread(target=run, daemon=True, name="bus-shutdown")
     t.start()
