@@ -150,6 +150,19 @@ def static_sag_m(car: VehicleParams, design: VehicleParams) -> float:
                             - design.sprung_mass_kg / design.spring_stiffness_n_per_m)
 
 
+def on_calibration(car: "VehicleConfig", calibration: "VehicleConfig") -> "VehicleConfig":
+    """``car`` driven with the ECU of ``calibration``'s car: at the ride height that car was
+    set up for (``static_sag_m``, added to its own static deflection), which the deflection
+    sensor reads and the bump stops feel. The one path for a campaign space's ``nominal``
+    calibration and ``--calibration FILE``; ``car`` itself when nothing moves."""
+    sag = static_sag_m(car.vehicle, calibration.vehicle) \
+        + calibration.nonlinear.static_deflection_m
+    if sag == car.nonlinear.static_deflection_m:
+        return car
+    return dataclasses.replace(car, nonlinear=dataclasses.replace(
+        car.nonlinear, static_deflection_m=sag))
+
+
 @dataclass(frozen=True)
 class SensorChannel:
     """One analogue channel: Gaussian noise then an ADC with ``bits`` over [min, max]."""

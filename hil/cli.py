@@ -28,6 +28,13 @@ def add_vehicle_argument(parser: argparse.ArgumentParser) -> None:
                         help="vehicle TOML file (default: the paper's Table 3 car)")
 
 
+def add_calibration_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--calibration", metavar="FILE", default=None,
+                        help="the vehicle file the ECU is calibrated for (default: the driven "
+                             "car's own): the plant drives --vehicle at that car's ride height, "
+                             "the ECU carries that car's calibration")
+
+
 def add_design_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--design", metavar="FILE", default=None,
                         help="design options TOML ([design] table, calib.options; [calibration] "
@@ -193,6 +200,23 @@ def vehicle_or_exit(path: str | None) -> VehicleConfig:
         return load_vehicle(path)
     except ConfigError as exc:
         fail(str(exc))
+
+
+def cars_or_exit(vehicle: str | None, calibration: str | None
+                 ) -> tuple[VehicleConfig, VehicleConfig]:
+    """(the car the plant drives, the car the ECU is calibrated for): ``--vehicle`` at the
+    ride height of ``--calibration``'s car (``calib.vehicle.on_calibration``, the campaign's
+    ``nominal`` path), and that car; both the driven car without ``--calibration``."""
+    from calib.vehicle import on_calibration
+
+    car = vehicle_or_exit(vehicle)
+    if calibration is None:
+        return car, car
+    cal = vehicle_or_exit(calibration)
+    if cal.sim.plant_dt_s != car.sim.plant_dt_s:
+        fail(f"--calibration {calibration}: its tick ({cal.sim.plant_dt_s:g} s) is not the "
+             f"driven car's plant step ({car.sim.plant_dt_s:g} s)")
+    return on_calibration(car, cal), cal
 
 
 def route_or_exit(spec: str) -> Route:

@@ -314,10 +314,12 @@ def _tell_driver(t: float, faults: int, reason: int) -> None:
 def _make_node(role: str, args, codec):
     """The node ``role`` of the command line: the configuration checked first (one line and
     exit 2 on a bad file), then the key, then the node."""
-    from hil.cli import design_or_exit, fail, key_or_exit, route_or_exit, vehicle_or_exit
+    from hil.cli import cars_or_exit, design_or_exit, fail, key_or_exit, route_or_exit
     from hil.config import ConfigError, load_driver_script
 
-    cfg = vehicle_or_exit(args.vehicle)
+    # (the plant drives --vehicle at the ride height of --calibration's car; the ECU's
+    # --vehicle is the car it is calibrated for)
+    cfg, _ = cars_or_exit(args.vehicle, getattr(args, "calibration", None))
     try:
         if role == "plant":
             from hil.nodes.sil import check_route

@@ -77,6 +77,8 @@ def _build(out: Path, cfg, route, args, dt: float, summaries: dict):
     trace = sil.merge_traces(dt, plant_tr, ecu_tr)
     report = sil.build_report(cfg, route, args.mode, args.controller, args.seed, trace,
                               summaries["plant"], summaries["ecu"], summaries["app"])
+    if args.calibration:
+        report["calibration"] = args.calibration
     return report, trace
 
 

@@ -24,6 +24,7 @@ class RunSpec:
     mode: str = "auto"
     seed: int = 1
     vehicle: Optional[str] = None
+    calibration: Optional[str] = None          # the car the ECU is calibrated for
     controller: Optional[str] = None
     gains: Optional[str] = None
     design: Optional[str] = None

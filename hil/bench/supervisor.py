@@ -42,10 +42,10 @@ STALL_S = 20.0               # no progress for this long stops the run (--stall-
 
 
 def _check_inputs(args: RunSpec):
-    from hil.cli import design_or_exit, fail, route_or_exit, vehicle_or_exit
+    from hil.cli import cars_or_exit, design_or_exit, fail, route_or_exit
     from hil.config import ConfigError, load_driver_script
 
-    cfg = vehicle_or_exit(args.vehicle)
+    cfg, cal = cars_or_exit(args.vehicle, args.calibration)
     route = route_or_exit(args.route)
     design_or_exit(args.design)          # (checked here; the ECU node reads it)
     try:
@@ -55,7 +55,7 @@ def _check_inputs(args: RunSpec):
         if args.gains:
             from calib.control_design import load_gains
 
-            load_gains(Path(args.gains), cfg)
+            load_gains(Path(args.gains), cal)
     except ConfigError as exc:
         fail(str(exc))
     if args.driver == "script" and not args.script:
@@ -71,9 +71,12 @@ def _node_argvs(args: RunSpec, spec: BusSpec, out: Path, rt: int, key_file: Path
                 ) -> dict[str, list[str]]:
     common = ["-i", spec.interface, "-c", spec.channel, "--out", str(out), "--pace", args.pace,
               "--key-file", str(key_file)]
-    if args.vehicle:
-        common += ["--vehicle", args.vehicle]
-    ecu = [*common, "--mode", args.mode, "--rt-priority", str(rt_of(rt, "ecu"))]
+    car = ["--vehicle", args.vehicle] if args.vehicle else []
+    # the ECU's car is the one it is calibrated for; the plant drives --vehicle at that
+    # car's ride height
+    ecu = [*common, *(["--vehicle", args.calibration] if args.calibration else car),
+           "--mode", args.mode, "--rt-priority", str(rt_of(rt, "ecu"))]
+    common += car
     for flag, value in (("--controller", args.controller), ("--gains", args.gains),
                         ("--design", args.design)):
         if value:
@@ -89,6 +92,8 @@ def _node_argvs(args: RunSpec, spec: BusSpec, out: Path, rt: int, key_file: Path
         app += ["--script", args.script]
     plant = [*common, "--route", args.route, "--seed", str(args.seed),
              "--rt-priority", str(rt_of(rt, "plant"))]
+    if args.calibration:
+        plant += ["--calibration", args.calibration]
     if args.inject:       # hil faults: the injector's plan
         plant += ["--inject", args.inject]
         app += ["--inject", args.inject]

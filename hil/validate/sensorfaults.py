@@ -59,6 +59,7 @@ class Case:
     isolable: bool                  # by the analysis, in comfort and in the fail-safe
     expect_detect_ms: Optional[float]     # the ECU's tests by the analysis (comfort)
     expect_isolate_ms: Optional[float]    # the bank by the analysis (passive: the fail-safe)
+    calibration: Optional[str] = None     # the car the ECU is calibrated for (None: its own)
 
     @property
     def name(self) -> str:
@@ -76,7 +77,8 @@ class Case:
     def command(self) -> str:
         return (f"python -m hil faults --sensors --vehicle {self.vehicle} --seeds "
                 f"{self.seed}-{self.seed} --only {self.name}"
-                + (f" --route {self.route}" if self.route else ""))
+                + (f" --route {self.route}" if self.route else "")
+                + (f" --calibration {self.calibration}" if self.calibration else ""))
 
 
 def limit_ms(kind: str, magnitude: str) -> float:
@@ -93,6 +95,20 @@ def vehicle(name: str):
     from hil.validate.alarms import vehicle_path
 
     return load_vehicle(vehicle_path(name))
+
+
+def cars(name: str, calibration: Optional[str]):
+    """(the car the plant drives, the ECU's calibration): ``name`` at the ride height of
+    ``calibration``'s car and that car's design (``calib.vehicle.on_calibration``, as
+    ``hil sim --calibration``), or ``name`` on its own."""
+    from calib.vehicle import on_calibration
+    from hil.nodes import sil
+
+    car = vehicle(name)
+    if calibration is None:
+        return car, sil.ecu_params(car, MODE)
+    cal = vehicle(calibration)
+    return on_calibration(car, cal), sil.ecu_params(cal, MODE)
 
 
 def route_of(spec: Optional[str]):
@@ -113,15 +129,18 @@ def onset_segment(route):
     return route.segments[-1]
 
 
-def cases(vehicles, route: Optional[str], seeds, only=None, progress=None) -> list[Case]:
-    """Every fault with a signal to act on (the analysis's comfort rows), per car and seed."""
+def cases(vehicles, route: Optional[str], seeds, only=None, progress=None,
+          calibration: Optional[str] = None) -> list[Case]:
+    """Every fault with a signal to act on (the analysis's comfort rows), per car and seed.
+    With ``calibration`` the analysis is that car's: the model the ECU was designed on."""
     from calib.isolability import analyse_cached
     from calib.options import DesignOptions
 
     seg = onset_segment(route_of(route))
     out = []
     for v in vehicles:
-        res = analyse_cached(vehicle(v), DesignOptions(), seg.grade, seg.speed_mps)
+        res = analyse_cached(vehicle(calibration or v), DesignOptions(), seg.grade,
+                             seg.speed_mps)
         rows = [r for r in res["faults"] if r["condition"] == MODE and "note" not in r]
         after = {(r["sensor"], r["kind"], r["magnitude"]): r for r in res["faults"]
                  if r["condition"] == "passive"}
@@ -135,7 +154,7 @@ def cases(vehicles, route: Optional[str], seeds, only=None, progress=None) -> li
                 both = bool(r.get("isolable")) and "note" not in p and bool(p.get("isolable"))
                 c = Case(v, route, seed, r["sensor"], r["kind"], r["magnitude"],
                          float(r["size"] or 0.0), both, r.get("detect_ms"),
-                         p.get("isolated_ms") if both else None)
+                         p.get("isolated_ms") if both else None, calibration)
                 if only is None or c.name in only:
                     out.append(c)
     return out
@@ -160,11 +179,13 @@ def plant_fault(case: Case, dt: float) -> tuple:
 
 
 @functools.lru_cache(maxsize=8)
-def _fault_free(vehicle_name: str, route: Optional[str], seed: int):
+def _fault_free(vehicle_name: str, route: Optional[str], seed: int,
+                calibration: Optional[str] = None):
     """The same seed's drive without a fault (per worker process, once)."""
     from hil.nodes import sil
 
-    _, trace = sil.run(vehicle(vehicle_name), route_of(route), MODE, seed,
+    car, params = cars(vehicle_name, calibration)
+    _, trace = sil.run(car, route_of(route), MODE, seed, params=params,
                        duration_s=ONSET_S + FOLLOW_S)
     return trace.arrays
 
@@ -192,12 +213,12 @@ def run_case(case: Case) -> dict:
     from hil.nodes import sil
 
     t0 = time.perf_counter()
-    cfg = vehicle(case.vehicle)
+    cfg, params = cars(case.vehicle, case.calibration)
     dt = cfg.sim.plant_dt_s
     fault = plant_fault(case, dt)
     onset = fault[2]
     got: list = []
-    report, trace = sil.run(cfg, route_of(case.route), MODE, case.seed,
+    report, trace = sil.run(cfg, route_of(case.route), MODE, case.seed, params=params,
                             duration_s=ONSET_S + FOLLOW_S, sensor_fault=fault, ecu_out=got)
     a = trace.arrays
     n = len(a["faults"])
@@ -226,8 +247,8 @@ def run_case(case: Case) -> dict:
                 "mode": _mode_name(int(np.bincount(driven).argmax())) if len(driven)
                 else "passive",
                 "ratios": ratios(a, span),
-                "fault_free_ratios": ratios(_fault_free(case.vehicle, case.route, case.seed),
-                                            span)}
+                "fault_free_ratios": ratios(_fault_free(case.vehicle, case.route, case.seed,
+                                                        case.calibration), span)}
     ms = 1e3 * dt
     return {**dataclasses.asdict(case), "name": case.name,
             "detect_ms": None if detect is None else round((detect + 1) * ms, 1),
@@ -391,6 +412,12 @@ def main(args) -> int:
     try:
         for v in vehicles:
             vehicle(v)
+        if args.calibration:
+            cal = vehicle(args.calibration)
+            for v in vehicles:
+                if vehicle(v).sim.plant_dt_s != cal.sim.plant_dt_s:
+                    fail(f"faults --sensors: --calibration {args.calibration}: its tick is "
+                         f"not {v}'s plant step")
         r = route_of(args.route)
     except (ConfigError, OSError) as exc:
         fail(f"faults --sensors: {exc}")
@@ -403,7 +430,7 @@ def main(args) -> int:
           "the first run, about a minute per car)", file=sys.stderr, flush=True)
     lock_out(args.out)
     try:
-        todo = cases(vehicles, args.route, args.seeds, only)
+        todo = cases(vehicles, args.route, args.seeds, only, calibration=args.calibration)
     except AssertionError as exc:            # (a self-check of the analysis failed)
         fail(f"faults --sensors: the isolability analysis failed its self-check: {exc}")
     start = time.monotonic()

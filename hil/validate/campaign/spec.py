@@ -263,13 +263,9 @@ def vehicle_config(spec: dict, noise: float, where: str = ""):
                    for f in dataclasses.fields(cfg.sensors)}
         cfg = dataclasses.replace(cfg, sensors=type(cfg.sensors)(**sensors))
     if spec.get("calibration") == "nominal" and spec["factors"]:
-        from calib.vehicle import static_sag_m
+        from calib.vehicle import on_calibration
 
-        design = vehicle_config(base_spec(spec), 1.0, where)
-        sag = static_sag_m(cfg.vehicle, design.vehicle) + design.nonlinear.static_deflection_m
-        if sag != cfg.nonlinear.static_deflection_m:
-            cfg = dataclasses.replace(cfg, nonlinear=dataclasses.replace(
-                cfg.nonlinear, static_deflection_m=sag))
+        cfg = on_calibration(cfg, vehicle_config(base_spec(spec), 1.0, where))
     return cfg
 
 
