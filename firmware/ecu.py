@@ -167,6 +167,7 @@ def tick(Pa, Ta, Sa, ia, oa) -> None:
         if Ta is not None:
             S.fx.x[:] = 0
             S.fx.reset = True
+    degrade.take_out(P, S, inp.tick)      # (a sensor left out by hand: as if named now)
     degrade.known_force(S.degrade, force_meas + akf.bump_force(P.akf, defl))
     vt, zt, zf = S.akf.x[1], S.akf.x[3], S.akf.x[4]
     dtd_est = zt - zf
@@ -427,10 +428,10 @@ class Ecu:
         new_cycle(self.S)
 
     def leave_out(self, sensor: str) -> None:
-        """Start as if the isolation had named ``sensor`` (``degrade.SENSOR_NAMES``), out to
-        the end of the cycle: how the bench measures what the ECU does without it
-        (``tools.degraded``)."""
-        degrade.enter_record(self.P, self.S, sensor, self.tick)
+        """From the next tick on, as if the isolation had named ``sensor``
+        (``degrade.SENSOR_NAMES``) in it, out to the end of the cycle: how the bench measures
+        what the ECU does without it (``tools.degraded``)."""
+        degrade.leave_out(self.S, sensor)
 
     @property
     def tick(self) -> int:

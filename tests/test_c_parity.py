@@ -24,7 +24,8 @@ from hil.nodes import sil
 from hil.sim.road import load_route
 from hil.transport.codec import Codec, raw_range
 from tools.c_build import (C_DIR, GEN, PARITY_S, REPLAY_SOURCES, bump_stop_trace, compile_c,
-                           full_road_trace, replay_sources, sensor_fault_trace)
+                           full_road_trace, left_out_trace, replay_sources,
+                           sensor_fault_trace)
 from tools.c_build import parse_cov_output, replay_cov_input
 from tools.c_build import replay_input as trace_text
 
@@ -148,6 +149,22 @@ def test_c_is_bit_exact_through_a_sensor_left_out(replay_exe):
     # the estimator in C: the held measurement, the restart and the reduced filter after it
     assert rec[resets[0]][0].cov_flags & COV_RESTART
     assert any(i.cov_flags & 0b111 for i, _ in rec[resets[0] + 1:])
+    assert_estimator_bit_exact(replay_exe, rec)
+
+
+def test_c_is_bit_exact_through_a_sensor_left_out_between_ticks(replay_exe):
+    """``Ecu.leave_out`` mid-drive (between two ticks, as tools.degraded and a workshop
+    would): the restart is the next tick's, in its hand-over (the reset and COV_RESTART), so
+    the C path and the C estimator restart where Python does."""
+    rec = left_out_trace(at_tick=1500)
+    resets = [k for k, (tin, _) in enumerate(rec) if tin.reset]
+    assert resets == [1500], resets
+    assert rec[1500][0].cov_flags & COV_RESTART
+    res = subprocess.run([str(replay_exe)], input=trace_text(rec), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    for k, (text, (_, out)) in enumerate(zip(res.stdout.splitlines(), rec)):
+        assert tuple(int(v) for v in text.split()) == out, f"tick {k}: C {text} != Python {out}"
+    assert len({out[0] for _, out in rec[1500:]}) > 100   # (driven on after it)
     assert_estimator_bit_exact(replay_exe, rec)
 
 

@@ -82,7 +82,7 @@ def test_firmware_functions_stay_short_and_the_tick_reads_in_one_screen():
 PACKAGES = ("firmware", "calib", "hil", "tools")
 MAX_FILE_LINES = 500
 MAX_FUNCTION_LINES = 80     # outside kernels/ (compiled code keeps a stage in one function)
-HIL_TOP_MODULES = {"__init__.py", "__main__.py", "cli.py", "config.py", "hub.py"}
+HIL_TOP_MODULES = {"__init__.py", "__main__.py", "cli.py", "config.py", "hub.py", "parsers.py"}
 
 
 def test_no_file_over_500_lines_and_no_function_over_80_outside_the_kernels():

@@ -141,3 +141,28 @@ def sensor_fault_trace() -> list:
     sil.run(default_vehicle(), load_route("full_road_section"), "comfort", 2, fixed_point=True,
             fx_record=rec, duration_s=6.0, sensor_fault=("susp_defl", "bias", 2000, 0.003))
     return rec
+
+
+def left_out_trace(at_tick: int = 1500, duration_s: float = 3.0) -> list:
+    """3 s in comfort, the deflection sensor left out by hand between ticks ``at_tick`` - 1
+    and ``at_tick`` (``firmware.ecu.Ecu.leave_out`` mid-drive, the three nodes in this
+    process): the filter and the controllers restarted, driven on."""
+    from hil.config import default_vehicle
+    from hil.nodes import sil
+    from hil.nodes.inprocess import run_in_process
+    from hil.nodes.ecu import EcuNode
+    from hil.nodes.plant import PlantNode
+    from hil.sim.road import load_route
+    from hil.transport import secoc
+    from hil.transport.codec import Codec
+
+    cfg, codec, key = default_vehicle(), Codec(), secoc.new_key()
+    plant = PlantNode(cfg, load_route("full_road_section"), 2, codec, key=key)
+    plant.n = int(round(duration_s / plant.dt))
+    ecu = EcuNode(sil.ecu_params(cfg, "comfort"), codec, lockstep=True, fixed_point=True,
+                  record=True, key=key)
+    app = sil.app_node(codec, "comfort", cfg.sim.plant_dt_s, key=key)
+    run_in_process(plant, ecu, app, until=at_tick)
+    ecu.state.leave_out("susp_defl")
+    run_in_process(plant, ecu, app)
+    return ecu.state.log

@@ -6,7 +6,7 @@
 
 #include <stdint.h>
 
-#define ECU_IMAGE_EPK "SUSP_ECU_5917e960006a9d127691437"
+#define ECU_IMAGE_EPK "SUSP_ECU_d0b8fe65636d4fc8619c909"
 #define ECU_IMAGE_EPK_LEN 32
 #define ECU_IMAGE_IDENT_ADDR 0x100u
 #define ECU_IMAGE_IDENT_SIZE 32u
@@ -15,7 +15,7 @@
 #define ECU_IMAGE_FX_ADDR 0x20000u
 #define ECU_IMAGE_FX_SIZE 12145u
 #define ECU_IMAGE_STATE_ADDR 0x20000000u
-#define ECU_IMAGE_STATE_SIZE 9963u
+#define ECU_IMAGE_STATE_SIZE 9971u
 #define ECU_IMAGE_INPUTS_ADDR 0x20002700u
 #define ECU_IMAGE_INPUTS_SIZE 44u
 #define ECU_IMAGE_OUTPUTS_ADDR 0x20002800u
@@ -734,6 +734,7 @@ typedef struct __attribute__((packed)) {
 } ecu_state_bank_t;
 typedef struct __attribute__((packed)) {
     int64_t sensor;
+    int64_t pending;
     uint8_t latched;
     uint8_t failsafe;
     int64_t since;
@@ -892,7 +893,7 @@ extern const char ecu_epk[32];
 /* each record is its segment, byte for byte */
 _Static_assert(sizeof(ecu_cal_t) == 11020u, "CAL size");
 _Static_assert(sizeof(ecu_fx_t) == 12145u, "FX size");
-_Static_assert(sizeof(ecu_state_t) == 9963u, "STATE size");
+_Static_assert(sizeof(ecu_state_t) == 9971u, "STATE size");
 _Static_assert(sizeof(ecu_inputs_t) == 44u, "INPUTS size");
 _Static_assert(sizeof(ecu_outputs_t) == 59u, "OUTPUTS size");
 

@@ -74,6 +74,7 @@ ALL_MODES = (1 << len(MODE_NAMES)) - 1   # bit m: mode m (firmware.params.MODE_*
 
 STATE = np.dtype([
     ("sensor", "i8"),                    # the sensor out (NONE: all in use)
+    ("pending", "i8"),                   # left out by hand, taken out next tick (NONE: none)
     ("latched", "u1"),                   # ... to the end of the cycle (named twice in it)
     ("failsafe", "u1"),                  # latched fail-safe (a second fault)
     ("since", "i8"),                     # tick it went out (-1: none)
@@ -92,7 +93,7 @@ STATE = np.dtype([
 
 
 def init(S) -> None:
-    S.sensor = NONE
+    S.sensor = S.pending = NONE
     S.since = S.restart = S.second = S.ok_since = -1
 
 
@@ -121,7 +122,7 @@ def substitute(P, S, received):
     D = S.degrade
     counts = D.counts
     counts[:] = received
-    j = D.sensor
+    j = D.sensor if D.pending == NONE else D.pending
     if j == NONE:
         return counts
     c = CHANNEL[j]
@@ -255,18 +256,27 @@ def silence(S, failed: int) -> int:
     return failed & ~own
 
 
-def enter_record(Pa, Sa, sensor: str, tick: int) -> None:
-    """``enter`` on the calibration and state records, the sensor by name (SENSOR_NAMES),
-    out to the end of the cycle (``latched``: what the ECU does without it)."""
+def leave_out(Sa, sensor: str) -> None:
+    """The sensor by name (SENSOR_NAMES) out to the end of the cycle (``latched``: what
+    the ECU does without it), from the next tick on: its channel is the virtual sensor's from
+    that tick's stage 1, and ``enter`` acts in its stage 2b, where a naming by the isolation
+    bank does (``take_out``). Between ticks it would restart the filter unseen by the
+    fixed-point path's record (the next tick's hand-over starts clean): the C estimator's
+    replay would not restart, and C would part from Python."""
     if sensor not in SENSOR_NAMES:
         raise ValueError(f"unknown sensor {sensor!r} (one of {', '.join(SENSOR_NAMES)})")
-    _enter_record(Pa, Sa, SENSOR_NAMES.index(sensor), tick)
+    Sa[0]["degrade"]["pending"] = SENSOR_NAMES.index(sensor)
 
 
 @njit
-def _enter_record(Pa, Sa, j: int, tick: int) -> None:
-    enter(Pa[0], Sa[0], j, tick)
-    Sa[0].degrade.latched = True
+def take_out(P, S, tick: int) -> None:
+    """Stage 2b, first: a sensor left out by hand (``leave_out``) goes out, latched."""
+    j = S.degrade.pending
+    if j == NONE:
+        return
+    S.degrade.pending = NONE
+    enter(P, S, j, tick)
+    S.degrade.latched = True
 
 
 @njit
