@@ -39,7 +39,8 @@ def build_section(cls: type, table: Any, path: Path, name: str, base: Any = None
     """Build dataclass ``cls`` from TOML ``table`` strictly: unknown keys, wrong types and
     out-of-range values are errors. Fields missing from ``table`` take ``base``'s value (or the
     dataclass default) unless ``required``. Field metadata: ``positive`` (default True),
-    ``allow_zero``, ``upper`` (inclusive bound), ``integer``."""
+    ``allow_zero``, ``upper`` (inclusive bound), ``range`` (the physical range: inclusive
+    bounds, ``docs/plant.md``), ``integer``."""
     if table is None:
         table = {}
     if not isinstance(table, Mapping):
@@ -78,27 +79,34 @@ def build_section(cls: type, table: Any, path: Path, name: str, base: Any = None
         upper = meta.get("upper")
         if upper is not None and value > upper:
             raise ConfigError(f"{path}: key '{full}' must be <= {upper}, got {value}")
+        lo, hi = meta.get("range", (-math.inf, math.inf))
+        if not lo <= value <= hi:
+            raise ConfigError(f"{path}: key '{full}' must be in [{lo:g}, {hi:g}] (its "
+                              f"physical range), got {value:g}")
         values[fname] = value
     return cls(**values)
 
 
-def _pos(**extra: Any) -> Any:
-    return dataclasses.field(metadata={"positive": True, **extra})
+def _pos(lo: float, hi: float, **extra: Any) -> Any:
+    """A positive quantity within its physical range [lo, hi]."""
+    return dataclasses.field(metadata={"positive": True, "range": (lo, hi), **extra})
 
 
-def _nonneg() -> Any:
-    return dataclasses.field(metadata={"positive": True, "allow_zero": True})
+def _nonneg(hi: float = math.inf) -> Any:
+    return dataclasses.field(metadata={"positive": True, "allow_zero": True,
+                                       "range": (0.0, hi)})
 
 
 @dataclass(frozen=True)
 class VehicleParams:
     """Quarter-car parameters (paper Table 3)."""
 
-    sprung_mass_kg: float = _pos()
-    unsprung_mass_kg: float = _pos()
-    spring_stiffness_n_per_m: float = _pos()
-    damping_n_s_per_m: float = _pos()
-    tire_stiffness_n_per_m: float = _pos()
+    # (the physical ranges: one corner of anything from a light quadricycle to a heavy truck)
+    sprung_mass_kg: float = _pos(20.0, 5000.0)
+    unsprung_mass_kg: float = _pos(2.0, 1000.0)
+    spring_stiffness_n_per_m: float = _pos(1e3, 1e6)
+    damping_n_s_per_m: float = _pos(10.0, 1e5)
+    tire_stiffness_n_per_m: float = _pos(1e4, 1e7)
 
     @property
     def static_tire_load_n(self) -> float:
@@ -109,15 +117,15 @@ class VehicleParams:
 class ActuatorParams:
     """Ball-screw DC motor driven by an H-bridge; regeneration into a storage element."""
 
-    screw_lead_m: float = _pos()
-    torque_constant_nm_per_a: float = _pos()
-    winding_resistance_ohm: float = _pos()
-    winding_inductance_h: float = _pos()
-    screw_efficiency: float = dataclasses.field(metadata={"positive": True, "upper": 1.0})
-    viscous_friction_n_s_per_m: float = _nonneg()
-    current_limit_a: float = _pos()
-    bus_voltage_v: float = _pos()
-    storage_voltage_v: float = _pos()
+    screw_lead_m: float = _pos(1e-3, 0.1)
+    torque_constant_nm_per_a: float = _pos(1e-3, 10.0)
+    winding_resistance_ohm: float = _pos(1e-3, 100.0)
+    winding_inductance_h: float = _pos(1e-6, 1.0)
+    screw_efficiency: float = _pos(0.1, 1.0)
+    viscous_friction_n_s_per_m: float = _nonneg(1e4)
+    current_limit_a: float = _pos(0.1, 1000.0)
+    bus_voltage_v: float = _pos(1.0, 1000.0)
+    storage_voltage_v: float = _pos(1.0, 1000.0)
 
     @property
     def force_constant_n_per_a(self) -> float:
@@ -130,15 +138,16 @@ class NonlinearParams:
     """Optional nonlinearities of the plant (off by default: the paper's model is linear)."""
 
     bump_stops: bool = dataclasses.field(metadata={"kind": "bool"})
-    bump_stop_clearance_m: float = _pos()
-    bump_stop_stiffness_n_per_m: float = _pos()
+    bump_stop_clearance_m: float = _pos(0.005, 0.5)
+    bump_stop_stiffness_n_per_m: float = _pos(1e3, 1e8)
     tire_lift_off: bool = dataclasses.field(metadata={"kind": "bool"})
     # the suspension's static deflection from the ride height it was set up for (m; negative:
     # compressed, as a payload on a car calibrated empty: -g (m_s / k_s - m_s0 / k_s0)). The
     # deflection sensor reads it, the bump stops' clearance shifts by it (less stroke in
     # compression); the linear dynamics are the same about the new equilibrium. A key with a
     # default: a vehicle file need not name it.
-    static_deflection_m: float = dataclasses.field(default=0.0, metadata={"positive": False})
+    static_deflection_m: float = dataclasses.field(default=0.0, metadata={
+        "positive": False, "range": (-0.5, 0.5)})
 
 
 def static_sag_m(car: VehicleParams, design: VehicleParams) -> float:
@@ -167,6 +176,7 @@ def on_calibration(car: "VehicleConfig", calibration: "VehicleConfig") -> "Vehic
 class SensorChannel:
     """One analogue channel: Gaussian noise then an ADC with ``bits`` over [min, max]."""
 
+    # (each channel's own bounds: CHANNEL_LIMITS)
     noise_std: float = _nonneg()
     range_min: float = dataclasses.field(metadata={"positive": False})
     range_max: float = dataclasses.field(metadata={"positive": False})
@@ -181,6 +191,16 @@ class SensorChannel:
         """One sample's noise variance, the ADC's quantisation (lsb^2 / 12) included."""
         return self.noise_std ** 2 + self.lsb ** 2 / 12.0
 
+
+# each channel's physical bound on |range_min|, |range_max| (its unit) and the largest noise
+# a sensor may have: a tenth of its span (a channel whose noise fills its range measures
+# nothing)
+CHANNEL_LIMITS = {"body_accel": 1000.0, "wheel_accel": 5000.0, "susp_defl": 1.0,
+                  "motor_current": 5000.0, "speed": 200.0, "supply_voltage": 2000.0}
+MAX_NOISE_SHARE = 0.1
+# the bus voltage must oppose the back-EMF up to this suspension velocity (m/s): below it the
+# bridge cannot drive the actuator at all (the default car: 48 V / 30 V s/m = 1.6 m/s)
+MIN_CONTROLLABLE_MPS = 0.1
 
 SENSOR_NAMES = ("body_accel", "wheel_accel", "susp_defl", "motor_current", "speed")
 # every channel of [sensors]: the five above (sampled together, hil.sim.sensors.SensorSuite) and
@@ -200,7 +220,7 @@ class SensorParams:
 
 @dataclass(frozen=True)
 class SimParams:
-    plant_dt_s: float = dataclasses.field(metadata={"positive": True, "upper": 0.01})
+    plant_dt_s: float = _pos(1e-5, 0.01)
 
 
 @dataclass(frozen=True)
@@ -216,6 +236,37 @@ class VehicleConfig:
 
 
 _TOP_LEVEL = ("vehicle", "actuator", "nonlinear", "sensors", "sim")
+
+
+def check_channel(path: Path, name: str, ch: SensorChannel) -> None:
+    """A channel's cross-checks: its range ordered and within the quantity's physical bound
+    (``CHANNEL_LIMITS``), its noise at most ``MAX_NOISE_SHARE`` of its span."""
+    if ch.range_max <= ch.range_min:
+        raise ConfigError(f"{path}: key 'sensors.{name}.range_max' must exceed range_min")
+    limit = CHANNEL_LIMITS[name]
+    for key in ("range_min", "range_max"):
+        value = getattr(ch, key)
+        if abs(value) > limit:
+            raise ConfigError(f"{path}: key 'sensors.{name}.{key}' must be in [{-limit:g}, "
+                              f"{limit:g}] (its physical range), got {value:g}")
+    span = ch.range_max - ch.range_min
+    if ch.noise_std > MAX_NOISE_SHARE * span:
+        raise ConfigError(f"{path}: key 'sensors.{name}.noise_std' ({ch.noise_std:g}) must be "
+                          f"at most {MAX_NOISE_SHARE:g} of the channel's span ({span:g})")
+
+
+def check_actuator(path: Path, ap: ActuatorParams) -> None:
+    """The actuator's cross-checks: a storage voltage within 10x the bus's, and a bus that
+    opposes the back-EMF up to ``MIN_CONTROLLABLE_MPS``."""
+    if ap.storage_voltage_v > 10 * ap.bus_voltage_v:
+        raise ConfigError(f"{path}: key 'actuator.storage_voltage_v' is implausibly high")
+    v = ap.bus_voltage_v / ap.force_constant_n_per_a
+    if v < MIN_CONTROLLABLE_MPS:
+        raise ConfigError(
+            f"{path}: the bus voltage ({ap.bus_voltage_v:g} V) opposes the back-EMF "
+            f"({ap.force_constant_n_per_a:.4g} V s/m) only up to {v:.3g} m/s of suspension "
+            f"velocity (at least {MIN_CONTROLLABLE_MPS:g}): check actuator.bus_voltage_v, "
+            f"screw_lead_m and torque_constant_nm_per_a")
 
 
 def parse_vehicle(data: Mapping[str, Any], path: Path, base: VehicleConfig | None) -> VehicleConfig:
@@ -244,10 +295,8 @@ def parse_vehicle(data: Mapping[str, Any], path: Path, base: VehicleConfig | Non
         channel = build_section(SensorChannel, sensors_table.get(name), path, f"sensors.{name}",
                                 getattr(base.sensors, name) if base else None,
                                 required=base is None)
-        if channel.range_max <= channel.range_min:
-            raise ConfigError(f"{path}: key 'sensors.{name}.range_max' must exceed range_min")
+        check_channel(path, name, channel)
         channels[name] = channel
-    if actuator.storage_voltage_v > 10 * actuator.bus_voltage_v:
-        raise ConfigError(f"{path}: key 'actuator.storage_voltage_v' is implausibly high")
+    check_actuator(path, actuator)
     return VehicleConfig(vehicle=vehicle, actuator=actuator, nonlinear=nonlinear,
                          sensors=SensorParams(**channels), sim=sim, source=str(path))

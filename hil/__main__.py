@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 
 from hil import parsers
-from hil.cli import apply_cache_argument, route_or_exit, vehicle_or_exit
+from hil.cli import OneLineParser, apply_cache_argument, route_or_exit, vehicle_or_exit
 from hil.report import verdict
 
 # the commands whose options include python-can's bus options: their parsers import can,
@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parser(argv: list[str]) -> argparse.ArgumentParser:
     """Every command's parser; the bus commands' only when they can be asked for."""
-    parser = argparse.ArgumentParser(prog="python -m hil", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(prog="python -m hil", description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     bus_parsers = not (argv[:1] and argv[0] in OTHER_COMMANDS)
     parsers.add_commands(sub, bus_parsers)

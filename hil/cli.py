@@ -131,6 +131,15 @@ def seed_arg(text: str) -> int:
     return value
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with a usage error in one line (exit 2): a missing or bad argument names
+    itself and points to ``--help`` instead of printing the whole usage. Sub-commands'
+    parsers are of the same class (argparse's ``add_subparsers`` default)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {self.prog}: {message} (--help: the usage)\n")
+
+
 def run_main(main: Callable[[], int]) -> NoReturn:
     """``sys.exit(main())``, with a ConfigError that escapes (e.g. a broken DBC, loaded at
     import) as one line and exit 2, never a traceback."""

@@ -179,3 +179,61 @@ def test_hil_sim_takes_a_design_file(tmp_path):
     proc = subprocess.run(base + ["--design", str(bad)], capture_output=True, text=True,
                           cwd=ROOT, timeout=300)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "design.ramp_s" in proc.stderr
+
+
+# ---------------------------------------------------------------- every key's physical range
+
+def _keys():
+    """Every numeric key of a vehicle file: (TOML table path, key, its field's metadata)."""
+    import dataclasses
+
+    from calib.vehicle import (SENSOR_KEYS, ActuatorParams, NonlinearParams, SensorChannel,
+                               SimParams, VehicleParams)
+
+    out = []
+    for table, cls in (("vehicle", VehicleParams), ("actuator", ActuatorParams),
+                       ("nonlinear", NonlinearParams), ("sim", SimParams)):
+        out += [((table,), f.name, f.metadata) for f in dataclasses.fields(cls)
+                if f.metadata.get("kind") != "bool"]
+    for ch in SENSOR_KEYS:
+        out += [(("sensors", ch), f.name, f.metadata) for f in dataclasses.fields(SensorChannel)]
+    return out
+
+
+ABSURD = (0, -1, 1e-30, 1e30, float("nan"), float("inf"), float("-inf"), 1)
+
+
+@pytest.mark.parametrize("value", ABSURD, ids=[repr(v) for v in ABSURD])
+def test_every_key_is_checked_against_its_physical_range(tmp_path, value):
+    """Every number of a vehicle file with 0, negative, tiny, huge, NaN, ±inf (and 1): the
+    file is refused in one ConfigError line naming the key, or the value lies inside the
+    key's documented range (docs/plant.md) and the whole car passes its cross-checks."""
+    import math
+    import tomllib
+
+    import tomli_w
+
+    from calib.vehicle import CHANNEL_LIMITS
+
+    base = tomllib.loads(DEFAULT_VEHICLE_FILE.read_text())
+    docs = (Path(__file__).resolve().parents[1] / "docs" / "plant.md").read_text()
+    for tables, key, meta in _keys():
+        data = tomllib.loads(tomli_w.dumps(base))
+        t = data
+        for name in tables:
+            t = t[name]
+        t[key] = int(value) if meta.get("integer") and math.isfinite(value) else value
+        path = write(tmp_path, tomli_w.dumps(data))
+        full = ".".join((*tables, key))
+        try:
+            load_vehicle(path)
+        except ConfigError as exc:
+            text = str(exc)
+            assert "\n" not in text and str(path) in text, text
+            continue
+        lo, hi = meta.get("range", (None, None))
+        if key in ("range_min", "range_max"):
+            lo, hi = -CHANNEL_LIMITS[tables[1]], CHANNEL_LIMITS[tables[1]]
+        assert lo is not None and lo <= value <= hi, f"{full} = {value!r} accepted"
+        if "range" in meta and not meta.get("integer") and math.isfinite(hi):
+            assert f"| `{full}` | {lo:g} | {hi:g} |" in docs, f"{full}'s range is not in docs"

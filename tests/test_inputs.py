@@ -26,10 +26,13 @@ def _segment(length="100", speed="20", grade='grade = "B"') -> str:
     return f"[[segment]]\n{grade}\nlength_m = {length}\nspeed_mps = {speed}\n"
 
 
-def _vehicle(tmp_path, key: str, value: str) -> str:
-    lines = [f"{key} = {value}" if ln.split("=")[0].strip() == key else ln
-             for ln in TABLE3.splitlines()]
-    assert any(ln == f"{key} = {value}" for ln in lines), key
+def _vehicle(tmp_path, key: str, value: str, *more: str) -> str:
+    """TABLE3 with ``key = value`` (and ``more``'s pairs) written over its own."""
+    lines = TABLE3.splitlines()
+    pairs = (key, value, *more)
+    for k, v in zip(pairs[::2], pairs[1::2]):
+        lines = [f"{k} = {v}" if ln.split("=")[0].strip() == k else ln for ln in lines]
+        assert any(ln == f"{k} = {v}" for ln in lines), k
     path = tmp_path / "vehicle.toml"
     path.write_text("\n".join(lines) + "\n")
     return str(path)
@@ -57,16 +60,27 @@ def test_absurd_routes_are_one_line_errors(tmp_path, road, segment, want):
                      "--duration", "1"], want)
 
 
-@pytest.mark.parametrize("key,value,want", [
-    ("sprung_mass_kg", "1e-6", "fastest mode (1.592e+08 Hz) is too fast for the plant step"),
-    ("spring_stiffness_n_per_m", "1e15", "is too fast for the plant step"),
-    ("tire_stiffness_n_per_m", "1e-6", "vehicle.tire_stiffness_n_per_m sags 3.53e+09 m"),
-    ("screw_lead_m", "1e-9", "exceeds 32767 N, FORCE_CMD's range"),
+@pytest.mark.parametrize("pairs,want", [
+    (("sprung_mass_kg", "1e-6"), "'vehicle.sprung_mass_kg' must be in [20, 5000] (its "
+                                 "physical range), got 1e-06"),
+    (("unsprung_mass_kg", "2.0", "tire_stiffness_n_per_m", "1e7"),
+     "fastest mode (356.2 Hz) is too fast for the plant step"),
+    (("tire_stiffness_n_per_m", "1e4"), "vehicle.tire_stiffness_n_per_m sags 0.353 m"),
+    (("current_limit_a", "1000.0", "torque_constant_nm_per_a", "0.2"),
+     "exceeds 32767 N, FORCE_CMD's range"),
+    (("winding_inductance_h", "1e30"), "'actuator.winding_inductance_h' must be in [1e-06, 1]"),
+    (("bus_voltage_v", "1e30"), "'actuator.bus_voltage_v' must be in [1, 1000]"),
+    (("bus_voltage_v", "2.0", "storage_voltage_v", "2.0"), "opposes the back-EMF (30 V s/m) only up to 0.0667 m/s"),
+    (("noise_std", "1e30"), "'sensors.body_accel.noise_std' (1e+30) must be at most 0.1 of"),
 ])
-def test_vehicles_that_cannot_be_simulated_are_refused_with_the_reason(tmp_path, key, value,
-                                                                       want):
-    path = _vehicle(tmp_path, key, value)
+def test_vehicles_that_cannot_be_simulated_are_refused_with_the_reason(tmp_path, pairs, want):
+    key = pairs[0]
+    path = _vehicle(tmp_path, *pairs)
     _one_line_error(["-m", "hil", "sim", "--vehicle", path, "--duration", "1"], want)
+    if key == "winding_inductance_h":    # hil run: before any node starts (one line, exit 2)
+        _one_line_error(["-m", "hil", "run", "--vehicle", path, "--out", str(tmp_path / "o"),
+                         "--duration", "1"], want)
+        assert not (tmp_path / "o").exists()
     if key == "sprung_mass_kg":          # the analysis tools too (they gave NaN, exit 0)
         for sub in ("passive", "limits"):
             _one_line_error(["-m", "tools.analysis", sub, "--grade", "B", "--speed", "20",
@@ -145,3 +159,17 @@ def test_a_full_disk_under_out_is_one_line_and_leaves_no_temporary_file(tmp_path
     with pytest.raises(OSError):
         write_atomic(tmp_path / "report.json", "{}")
     assert list(tmp_path.glob("*.tmp")) == [] and not (tmp_path / "report.json").exists()
+
+
+@pytest.mark.parametrize("argv,want", [
+    (["diag"], "no bench to talk to"),                   # (was an AttributeError traceback)
+    (["diag", "-c", "ws://127.0.0.1:9/"], "no bench to talk to"),
+    (["xcp", "info"], "required: --key-file"),
+    (["campaign"], "required: FILE.toml"),
+    (["campaign-case"], "required: DB, CASE_ID"),
+    ([], "required: command"),
+    (["sim", "--mode"], "argument --mode: expected one argument"),
+    (["logdiff", "a.log"], "required: LOG"),
+])
+def test_documented_commands_with_missing_arguments_say_so_in_one_line(argv, want):
+    _one_line_error(["-m", "hil", *argv], want)

@@ -308,7 +308,9 @@ def main(args) -> int:
 
     if not 0 < args.timeout <= 60:
         fail("--timeout must be in (0, 60] s")
-    bus = open_tester_bus(args.interface, args.channel, args.secret_file)
+    # (python-can's bus options leave -i and -c unset unless given)
+    bus = open_tester_bus(getattr(args, "interface", None), getattr(args, "channel", None),
+                          args.secret_file)
     try:
         with client(bus, args.timeout) as c:
             doc = read_all(c, clear=args.clear)
