@@ -49,3 +49,32 @@ def test_progress_lines_without_a_terminal(tmp_path):
     pcts = [int(x.split(":")[1].split("%")[0]) for x in lines]
     assert pcts[0] == 0 and pcts[-1] == 100 and pcts == sorted(set(pcts))
     assert len(pcts) >= 10 and all(b - a <= 10 for a, b in zip(pcts, pcts[1:]))
+
+
+@pytest.mark.parametrize("segments", [1, 5])
+def test_every_title_lies_inside_its_figure(tmp_path, monkeypatch, segments):
+    """A one-segment route cut the per-segment grids' titles at both ends (the figure 3.8 in
+    wide for an 80-character title); every figure's title now lies inside it."""
+    from hil.nodes import sil
+    from hil.report import figures
+    from hil.sim.road import load_route
+
+    route = tmp_path / "r.toml"
+    route.write_text('name = "a_route_with_a_long_enough_name"\n' + "".join(
+        f'[[segment]]\ngrade = "{g}"\nlength_m = 120.0\nspeed_mps = 20.0\n'
+        for g in "BCDCB"[:segments]))
+    cfg, r = load_vehicle(None), load_route(str(route))
+    report, trace = sil.run(cfg, r, "auto", 1)
+    saved = figures._save
+    inside = []
+
+    def check(fig, path, **kw):
+        fig.canvas.draw()
+        box, title = fig.bbox, fig._suptitle.get_window_extent()
+        inside.append((path.name, box.x0 <= title.x0 and title.x1 <= box.x1
+                       and title.y1 <= box.y1))
+        return saved(fig, path, **kw)
+
+    monkeypatch.setattr(figures, "_save", check)
+    figures.write_outputs(tmp_path, report, trace, cfg, r)
+    assert len(inside) == len(figures.FIGURES) and all(ok for _, ok in inside), inside

@@ -170,6 +170,33 @@ def test_a_full_disk_under_out_is_one_line_and_leaves_no_temporary_file(tmp_path
     ([], "required: command"),
     (["sim", "--mode"], "argument --mode: expected one argument"),
     (["logdiff", "a.log"], "required: LOG"),
+    (["ecu", "--key-file", "{key}"], "ecu: no CAN bus: this kernel has no vcan0"),  # (was 3)
+    (["plant", "-i", "pcan", "--key-file", "{key}"], "'pcan' needs a channel"),
+    # the hub's secret is hil run's, not hil keygen's (it said: make one with hil keygen)
+    (["diag", "-i", "remote", "-c", "ws://127.0.0.1:9/", "--secret-file", "nowhere.secret"],
+     "no such key file (the hub's secret: hil run writes it as OUT/hub.secret"),
 ])
-def test_documented_commands_with_missing_arguments_say_so_in_one_line(argv, want):
-    _one_line_error(["-m", "hil", *argv], want)
+def test_documented_commands_with_missing_arguments_say_so_in_one_line(tmp_path, argv, want,
+                                                                      monkeypatch):
+    from hil.transport import secoc
+    from hil.transport.bus import kernel_has_vcan
+
+    if argv[:1] == ["ecu"] and kernel_has_vcan("vcan0"):
+        pytest.skip("this kernel has vcan0: the node would open it and wait")
+    monkeypatch.delenv("CAN_INTERFACE", raising=False)
+    monkeypatch.delenv("CAN_CHANNEL", raising=False)
+    key = tmp_path / "k"
+    secoc.write_key(key)
+    _one_line_error(["-m", "hil", *[a.replace("{key}", str(key)) for a in argv]], want)
+
+
+def test_a_reused_sim_out_keeps_no_earlier_log_copy(tmp_path):
+    """hil sim --out DIR again: the bus log copies of the earlier run (bus.asc here) go; the
+    ones this run asks for are written anew (hil run's outputs are cleared the same way)."""
+    out = tmp_path / "o"
+    for fmt in ("asc", "trc"):
+        p = subprocess.run([sys.executable, "-m", "hil", "sim", "--route", "city", "--duration",
+                            "1", "--out", str(out), "--log-format", fmt, "--json"],
+                           capture_output=True, text=True, cwd=ROOT, timeout=300)
+        assert p.returncode == 0, p.stderr[-1500:]
+    assert (out / "bus.trc").is_file() and not (out / "bus.asc").exists()

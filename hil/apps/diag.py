@@ -269,7 +269,8 @@ def open_tester_bus(interface, channel, secret_file, response_id: int = RESPONSE
         if not secret_file:
             fail("on a hub the tester needs --secret-file DIR/hub.secret (else it is read-only)")
         try:
-            secret = load_key(secret_file)
+            secret = load_key(secret_file, "the hub's secret: hil run writes it as "
+                              "OUT/hub.secret, OUT its --out, default out/run")
         except ConfigError as exc:
             fail(f"--secret-file: {exc}")
     try:

@@ -68,14 +68,36 @@ def node_filters(name: str) -> Optional[list[dict]]:
     return [{"can_id": ID[m], "can_mask": 0x7FF, "extended": False} for m in READS[name]]
 
 
+def _no_bus(channel: Optional[str]) -> str:
+    which = channel or os.environ.get("CAN_CHANNEL") or "vcan0"
+    return (f"no CAN bus: this kernel has no {which}; start the bench with `python -m hil "
+            "run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
+
+
 def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -> can.BusABC:
     spec, needs_hub = resolve(interface, channel)
     if needs_hub:
-        which = channel or os.environ.get("CAN_CHANNEL") or "vcan0"
-        raise BusError(f"no CAN bus: this kernel has no {which}; start the bench with `python "
-                       "-m hil run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
+        raise BusError(_no_bus(channel))
     assert spec is not None
     return spec.open(can_filters=node_filters(name), node=DBC_NODE[name])
+
+
+def _bus_given_or_exit(role: str, args) -> None:
+    """A node started with no bus at all (no -i/-c, no CAN_INTERFACE/CAN_CHANNEL, and the
+    kernel has no vcan0), or an interface without its channel, is a usage error: one line,
+    exit 2, before the node is built. A bus given that cannot be reached (a channel this
+    kernel does not have, a hub that is not there) or is lost later is EXIT_BUS."""
+    from hil.cli import fail
+
+    interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
+    given = interface or channel or os.environ.get("CAN_INTERFACE") \
+        or os.environ.get("CAN_CHANNEL")
+    try:
+        _, needs_hub = resolve(interface, channel)
+    except BusError as exc:
+        fail(f"{role}: {exc}")
+    if needs_hub and not given:
+        fail(f"{role}: {_no_bus(channel)}")
 
 
 def _send(bus: can.BusABC, frames) -> None:
@@ -372,6 +394,7 @@ def main(role: str, args) -> int:
     sched = set_rt_priority(args.rt_priority or 0)
     if "refused" in sched:
         print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
+    _bus_given_or_exit(role, args)
     node = _make_node(role, args, Codec())
     try:
         bus = open_node_bus(role, getattr(args, "interface", None),   # (python-can: unset

@@ -161,7 +161,7 @@ def _timeseries(path: Path, trace, segs: list[dict], title: str) -> Path:
 
     a, dt = trace.arrays, trace.dt_s
     n = max(1, len(segs))
-    fig, axes = plt.subplots(3, n, figsize=(2.6 * n + 1.2, 6.8), squeeze=False,
+    fig, axes = plt.subplots(3, n, figsize=(_grid_width(n), 6.8), squeeze=False,
                              sharey="row")
     w = int(round(WINDOW_S / dt))
     for j, seg in enumerate(segs):
@@ -190,7 +190,7 @@ def _psd(path: Path, trace, segs: list[dict], title: str, cfg, route) -> Path:
 
     a, fs = trace.arrays, 1.0 / trace.dt_s
     n = max(1, len(segs))
-    fig, axes = plt.subplots(3, n, figsize=(2.6 * n + 1.2, 6.8), squeeze=False,
+    fig, axes = plt.subplots(3, n, figsize=(_grid_width(n), 6.8), squeeze=False,
                              sharex=True)
     f_lo, f_hi = 0.25, min(50.0, fs / 2)         # (the band of the suspension's modes)
     f_model = np.geomspace(f_lo, f_hi, 300)
@@ -230,10 +230,20 @@ def _column(axes, j: int, seg: dict, mode: str, xlabel: str) -> None:
     axes[-1, j].set_xlabel(xlabel)
 
 
+def _grid_width(n: int) -> float:
+    """A per-segment grid's width (inches): 2.6 a segment, never narrower than its title
+    needs on two lines (a one-segment route cut it at both ends)."""
+    return max(2.6 * n + 1.2, 7.5)
+
+
 def _grid_done(fig, axes, path: Path, suptitle: str) -> Path:
+    import textwrap
+
     _legend(fig, axes[0, 0])
-    fig.suptitle(suptitle, y=0.995)
-    return _save(fig, path, top=0.86)
+    # (the title wrapped to the figure: about 10 characters an inch at its size)
+    text = textwrap.fill(suptitle, int(fig.get_figwidth() * 10))
+    fig.suptitle(text, y=0.995)
+    return _save(fig, path, top=0.86 - 0.03 * text.count("\n"))
 
 
 def _comfort(path: Path, trace, segs: list[dict], title: str) -> Path:

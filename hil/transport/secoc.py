@@ -61,16 +61,18 @@ def write_key(path: str | Path, key: Optional[bytes] = None) -> bytes:
     return key
 
 
-def load_key(path: str | Path) -> bytes:
+def load_key(path: str | Path, where: str = "") -> bytes:
     """The key of a key file; a clear ConfigError for a missing, unreadable, shared (mode) or
-    malformed file."""
+    malformed file. ``where``: where a missing file comes from (default: hil keygen makes
+    one)."""
     path = Path(path)
     try:
         st = path.stat()
         text = path.read_text(encoding="ascii").strip()
     except FileNotFoundError:
-        raise ConfigError(f"{path}: no such key file (make one with python -m hil keygen "
-                          f"{path})") from None
+        raise ConfigError(f"{path}: no such key file ("
+                          + (where or f"make one with python -m hil keygen {path}")
+                          + ")") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read the key file: {exc}") from None
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
