@@ -85,7 +85,7 @@ def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -
 def _bus_given_or_exit(role: str, args) -> None:
     """A node started with no bus at all (no -i/-c, no CAN_INTERFACE/CAN_CHANNEL, and the
     kernel has no vcan0), or an interface without its channel, is a usage error: one line,
-    exit 2, before the node is built. A bus given that cannot be reached (a channel this
+    exit 2, once its configuration is checked (a bad file is its own one line). A bus given that cannot be reached (a channel this
     kernel does not have, a hub that is not there) or is lost later is EXIT_BUS."""
     from hil.cli import fail
 
@@ -394,8 +394,8 @@ def main(role: str, args) -> int:
     sched = set_rt_priority(args.rt_priority or 0)
     if "refused" in sched:
         print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
+    node = _make_node(role, args, Codec())         # (its configuration checked first)
     _bus_given_or_exit(role, args)
-    node = _make_node(role, args, Codec())
     try:
         bus = open_node_bus(role, getattr(args, "interface", None),   # (python-can: unset
                             getattr(args, "channel", None))             #  unless given)
