@@ -85,8 +85,9 @@ def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -
 def _bus_given_or_exit(role: str, args) -> None:
     """A node started with no bus at all (no -i/-c, no CAN_INTERFACE/CAN_CHANNEL, and the
     kernel has no vcan0), or an interface without its channel, is a usage error: one line,
-    exit 2, once its configuration is checked (a bad file is its own one line). A bus given that cannot be reached (a channel this
-    kernel does not have, a hub that is not there) or is lost later is EXIT_BUS."""
+    exit 2, once its configuration is checked (a bad file is its own one line). A bus
+    given that cannot be reached (a channel this kernel does not have, a hub that is not
+    there) or is lost later is EXIT_BUS."""
     from hil.cli import fail
 
     interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
