@@ -177,5 +177,20 @@ def test_the_tester_without_a_bench_says_so_in_one_line(tmp_path):
     secret.write_text("00" * 16)
     secret.chmod(0o600)                  # (a key file: hil.transport.secoc.load_key refuses others)
     p = _diag("ws://127.0.0.1:9/", secret)
-    assert p.returncode != 0 and len(p.stderr.strip().splitlines()) == 1
+    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1   # (docs: exit 1)
     assert "Traceback" not in p.stderr
+
+
+def test_the_protocol_libraries_print_nothing_beside_the_testers_line():
+    """can-isotp's and udsoncan's warnings reached stderr through logging's last resort (two
+    isotp lines beside 'no answer' when the tester started before the ECU answered): the
+    tester silences their loggers, its own line says what failed."""
+    code = ("import logging\n"
+            "from hil.apps.diag import PROTOCOL_LOGGERS, quiet_protocol_logs\n"
+            "logging.getLogger('isotp').warning('before')\n"
+            "quiet_protocol_logs()\n"
+            "for n in PROTOCOL_LOGGERS:\n"
+            "    logging.getLogger(n).warning('after')\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                       timeout=60)
+    assert p.returncode == 0 and p.stderr.strip().splitlines() == ["before"], p.stderr

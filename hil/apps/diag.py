@@ -275,8 +275,8 @@ def open_tester_bus(interface, channel, secret_file, response_id: int = RESPONSE
             fail(f"--secret-file: {exc}")
     try:
         return tester_bus(spec, secret, response_id)
-    except BusError as exc:
-        fail(str(exc))
+    except BusError as exc:          # (nothing behind the bus given: the run's failure, not
+        fail(str(exc), 1)            #  its input, as a bench that gives no answer)
 
 
 def tester_bus(spec, secret: Optional[bytes] = None, response_id: int = RESPONSE_ID):
@@ -301,6 +301,22 @@ def client(bus, timeout: float):
     return Client(PythonIsoTpConnection(stack), config=config)
 
 
+# the protocol libraries' loggers (can-isotp, udsoncan): their warnings went to stderr
+# through logging's last resort beside the tool's own line (two isotp lines when the tester
+# was started before the ECU answered); what they report reaches the tool as an exception
+PROTOCOL_LOGGERS = ("isotp", "UdsClient", "Connection")
+
+
+def quiet_protocol_logs() -> None:
+    """The protocol libraries say nothing on stderr: the tool's one line says what failed."""
+    import logging
+
+    for name in PROTOCOL_LOGGERS:
+        log = logging.getLogger(name)
+        log.addHandler(logging.NullHandler())
+        log.propagate = False
+
+
 def main(args) -> int:
     import udsoncan
 
@@ -309,6 +325,7 @@ def main(args) -> int:
 
     if not 0 < args.timeout <= 60:
         fail("--timeout must be in (0, 60] s")
+    quiet_protocol_logs()
     # (python-can's bus options leave -i and -c unset unless given)
     bus = open_tester_bus(getattr(args, "interface", None), getattr(args, "channel", None),
                           args.secret_file)
@@ -316,7 +333,9 @@ def main(args) -> int:
         with client(bus, args.timeout) as c:
             doc = read_all(c, clear=args.clear)
     except udsoncan.exceptions.TimeoutException:
-        fail(f"no answer from the ECU within {args.timeout:g} s (is the bench running?)", 1)
+        fail(f"no answer from the ECU within {args.timeout:g} s (is the bench running? its "
+             "ECU answers once the drive has started, a few seconds after hil run prints its "
+             "bus)", 1)
     except udsoncan.exceptions.NegativeResponseException as exc:
         fail(f"the ECU refused: {exc}", 1)
     except (udsoncan.exceptions.InvalidResponseException,
