@@ -59,7 +59,7 @@ def _sim(args) -> int:
     from hil.nodes import sil
     from hil.cli import (cars_or_exit, design_or_exit, fail, key_or_exit, lock_out,
                          log_options_or_exit, progress_bar)
-    from hil.transport.buslog import LOG_FORMATS, SIL_CHANNEL, BusLogFile, convert
+    from hil.transport.buslog import SIL_CHANNEL, BusLogFile, convert, copies_of
     from hil.config import ConfigError, load_driver_script
     from hil.report.figures import write_outputs
     from hil.nodes import LockstepClock
@@ -74,9 +74,9 @@ def _sim(args) -> int:
     start_us, formats = log_options_or_exit(args)
     if args.out:
         lock_out(args.out)
-        for fmt in LOG_FORMATS:      # (an earlier run's copies: only this run's stay beside
-            if fmt != "log":         #  its bus.log; the rest is written anew)
-                (Path(args.out) / f"bus.{fmt}").unlink(missing_ok=True)
+        # (an earlier run's log copies: only this run's stay; the rest is written anew)
+        for copy in copies_of(Path(args.out) / "bus.log"):
+            copy.unlink(missing_ok=True)
     try:
         script = load_driver_script(args.script) if args.script else None
         gains = Path(args.gains) if args.gains else None

@@ -68,37 +68,26 @@ def node_filters(name: str) -> Optional[list[dict]]:
     return [{"can_id": ID[m], "can_mask": 0x7FF, "extended": False} for m in READS[name]]
 
 
-def _no_bus(channel: Optional[str]) -> str:
-    which = channel or os.environ.get("CAN_CHANNEL") or "vcan0"
-    return (f"no CAN bus: this kernel has no {which}; start the bench with `python -m hil "
-            "run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
+class NoBusGiven(BusError):
+    """No bus to open was given (none at all, and the kernel has no vcan0; an interface
+    without its channel): a usage error, exit 2. A bus given that cannot be reached (a
+    channel this kernel does not have, a hub that is not there) is a BusError, EXIT_BUS."""
 
 
 def open_node_bus(name: str, interface: Optional[str], channel: Optional[str]) -> can.BusABC:
-    spec, needs_hub = resolve(interface, channel)
+    try:
+        spec, needs_hub = resolve(interface, channel)
+    except BusError as exc:
+        raise NoBusGiven(str(exc)) from None
     if needs_hub:
-        raise BusError(_no_bus(channel))
+        given = interface or channel or os.environ.get("CAN_INTERFACE") \
+            or os.environ.get("CAN_CHANNEL")
+        which = channel or os.environ.get("CAN_CHANNEL") or "vcan0"
+        raise (BusError if given else NoBusGiven)(
+            f"no CAN bus: this kernel has no {which}; start the bench with `python -m hil "
+            "run`, or give a hub with -i remote -c ws://127.0.0.1:PORT/")
     assert spec is not None
     return spec.open(can_filters=node_filters(name), node=DBC_NODE[name])
-
-
-def _bus_given_or_exit(role: str, args) -> None:
-    """A node started with no bus at all (no -i/-c, no CAN_INTERFACE/CAN_CHANNEL, and the
-    kernel has no vcan0), or an interface without its channel, is a usage error: one line,
-    exit 2, once its configuration is checked (a bad file is its own one line). A bus
-    given that cannot be reached (a channel this kernel does not have, a hub that is not
-    there) or is lost later is EXIT_BUS."""
-    from hil.cli import fail
-
-    interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
-    given = interface or channel or os.environ.get("CAN_INTERFACE") \
-        or os.environ.get("CAN_CHANNEL")
-    try:
-        _, needs_hub = resolve(interface, channel)
-    except BusError as exc:
-        fail(f"{role}: {exc}")
-    if needs_hub and not given:
-        fail(f"{role}: {_no_bus(channel)}")
 
 
 def _send(bus: can.BusABC, frames) -> None:
@@ -396,10 +385,12 @@ def main(role: str, args) -> int:
     if "refused" in sched:
         print(f"{role}: {sched}; deadlines may be missed", file=sys.stderr, flush=True)
     node = _make_node(role, args, Codec())         # (its configuration checked first)
-    _bus_given_or_exit(role, args)
     try:
         bus = open_node_bus(role, getattr(args, "interface", None),   # (python-can: unset
                             getattr(args, "channel", None))             #  unless given)
+    except NoBusGiven as exc:
+        print(f"error: {role}: {exc}", file=sys.stderr, flush=True)
+        return 2
     except BusError as exc:
         print(f"{role}: {exc}", file=sys.stderr, flush=True)
         return EXIT_BUS

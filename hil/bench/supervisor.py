@@ -35,7 +35,7 @@ from hil.transport import secoc
 from hil.transport.auth import SECRET_ENV
 from hil.transport.bus import (RT_PRIORITY, BusError, BusSpec, Hub, SocketcanTap, close_bus,
                                resolve, rt_of)
-from hil.transport.buslog import HUB_CHANNEL, LOG_FORMATS, BusLogFile
+from hil.transport.buslog import HUB_CHANNEL, BusLogFile, copies_of
 from hil.transport.codec import Codec
 
 STALL_S = 20.0               # no progress for this long stops the run (--stall-s)
@@ -166,7 +166,7 @@ def _clear_outputs(out: Path) -> None:
     from hil.report.figures import FIGURES
 
     stale = [f"{n}{x}" for n in NODES for x in (".json", ".npz", ".log")]
-    copies = [f"bus.{x}" for x in LOG_FORMATS if x != "log"]
+    copies = [p.name for p in copies_of(out / "bus.log")]
     for name in (*stale, *copies, "app.url", "hub.log", "report.json", "report.md",
                  secoc.KEY_FILE_NAME, HUB_SECRET_FILE, *FIGURES):
         (out / name).unlink(missing_ok=True)

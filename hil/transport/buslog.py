@@ -145,6 +145,11 @@ class _TrcWriter(can.io.TRCWriter):
         self.filepath = name
 
 
+def copies_of(log_path: Path) -> list[Path]:
+    """Every copy ``convert`` may write beside the candump log (``bus.asc``, ...)."""
+    return [Path(log_path).with_suffix("." + fmt) for fmt in LOG_FORMATS if fmt != "log"]
+
+
 def convert(log_path: Path, formats: Iterable[str], start_us: int) -> list[Path]:
     """Write the candump log's frames in each other format beside it (``bus.asc``, ...);
     returns the paths written. The candump log is the record: a format that cannot be

@@ -400,9 +400,10 @@ def main(args) -> int:
     import sys
     from pathlib import Path
 
-    from hil.cli import fail, lock_out
+    from hil.cli import cars_or_exit, fail, lock_out
     from hil.config import ConfigError
     from hil.report import verdict
+    from hil.validate.alarms import vehicle_path
 
     vehicles = args.vehicle.split(",") if args.vehicle else list(DEFAULT_VEHICLES)
     only = set(args.only.split(",")) if args.only else None
@@ -412,15 +413,11 @@ def main(args) -> int:
     try:
         for v in vehicles:
             vehicle(v)
-        if args.calibration:
-            cal = vehicle(args.calibration)
-            for v in vehicles:
-                if vehicle(v).sim.plant_dt_s != cal.sim.plant_dt_s:
-                    fail(f"faults --sensors: --calibration {args.calibration}: its tick is "
-                         f"not {v}'s plant step")
         r = route_of(args.route)
     except (ConfigError, OSError) as exc:
         fail(f"faults --sensors: {exc}")
+    for v in vehicles if args.calibration else ():     # (as hil sim --calibration checks)
+        cars_or_exit(str(vehicle_path(v)), str(vehicle_path(args.calibration)))
     if r.duration_s < ONSET_S + FOLLOW_S:
         fail(f"faults --sensors: route {r.name} lasts {r.duration_s:.1f} s; each drive needs "
              f"{ONSET_S + FOLLOW_S:g} s")
