@@ -41,6 +41,10 @@ EVT_REFUSED = 2
 EVT_CHOSEN = 4
 EVT_INVALID_REQUEST = 8
 EVT_REQUEST_RATE = 16        # a new request came too soon after the previous one: ignored
+# an ACCEPT of a valid mode the ECU no longer recommends: the recommendation changed while the
+# request was on its way (a race of the protocol, not invalid data): ignored, no fault; the
+# driver sees the new recommendation and answers it
+EVT_STALE_ACCEPT = 32
 
 STATE = np.dtype([
     ("user_mode", "i8"), ("active_mode", "i8"), ("recommended", "i8"),
@@ -93,8 +97,10 @@ def step(P, S, grade: int, req_kind: int, req_mode: int, req_counter: int, dtd_r
             if req_mode == S.recommended:
                 S.user_mode = S.recommended
                 S.events |= EVT_ACCEPTED
+            elif 0 <= req_mode < N_MODES:
+                S.events |= EVT_STALE_ACCEPT
             else:
-                S.events |= EVT_INVALID_REQUEST   # accepting a stale recommendation
+                S.events |= EVT_INVALID_REQUEST
         elif req_kind == REQ_REFUSE:
             S.refused_mode = S.recommended
             S.events |= EVT_REFUSED

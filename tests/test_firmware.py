@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from calib.ecu_params import build
-from firmware import actuator, adc, control, modes
+from firmware import actuator, adc, control, modes, safety
 from firmware import params as fp
-from firmware.ecu import Ecu, Inputs, _counts
+from firmware.ecu import Ecu, Inputs, _counts, _request_faults
 from firmware.ecu import init as ecu_init
 from firmware.layout import params_record
 from hil.config import default_vehicle
@@ -178,9 +178,15 @@ def test_recommend_but_switch_only_on_acceptance():
     # a repeated request (same counter) is not acted on again
     st, out = run_modes([(3, fp.REQ_ACCEPT, fp.MODE_COMPREHENSIVE, 1)], st)
     assert out[-1] == fp.MODE_COMFORT
-    # accepting a recommendation that is not the current one is invalid
+    # accepting a mode that is no longer recommended: the recommendation changed while the
+    # request was on its way (a race, not invalid data: no fault, U0405-81 stays unset)
     st, out = run_modes([(3, fp.REQ_ACCEPT, fp.MODE_SAFETY, 2)], st)
-    assert out[-1] == fp.MODE_COMFORT and st.events & modes.EVT_INVALID_REQUEST
+    assert out[-1] == fp.MODE_COMFORT and st.events == modes.EVT_STALE_ACCEPT
+    assert _request_faults(st.events) == 0
+    # ... and an ACCEPT of a mode that does not exist is invalid data
+    st, out = run_modes([(3, 0, 0, 2)] * MP.request_min_ticks + [(3, fp.REQ_ACCEPT, 9, 3)], st)
+    assert out[-1] == fp.MODE_COMFORT and st.events == modes.EVT_INVALID_REQUEST
+    assert _request_faults(st.events) == safety.FAULT_INVALID_REQUEST
 
 
 def test_refuse_and_choose():
