@@ -54,6 +54,7 @@ def _parser(argv: list[str]) -> argparse.ArgumentParser:
 
 
 def _sim(args) -> int:
+    import time
     from pathlib import Path
 
     from hil.nodes import sil
@@ -65,6 +66,7 @@ def _sim(args) -> int:
     from hil.nodes import LockstepClock
     from hil.report.render import finish, render_sil
 
+    t0 = time.monotonic()
     cfg, cal = cars_or_exit(args.vehicle, args.calibration)
     route = route_or_exit(args.route)
     opts = design_or_exit(args.design)
@@ -119,7 +121,8 @@ def _sim(args) -> int:
             fail(_cannot_write(args.out, exc), 1)
     if args.junit:
         verdict.write_junit(args.junit, f"hil sim {route.name} {args.mode}",
-                            [verdict.Check(**c) for c in report["checks"]])
+                            [verdict.Check(**c) for c in report["checks"]],
+                            time.monotonic() - t0)
     finish(report, None, "report.json", args.json, render_sil)
     if args.out and not args.json:
         print(f"report: {Path(args.out) / 'report.md'} (and report.json, bus.log, figures)")

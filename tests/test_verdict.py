@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import xml.etree.ElementTree as ET
+
 import junitparser
 import pytest
 
@@ -111,6 +113,11 @@ def test_sim_cli_carries_the_verdict_in_json_junit_and_exit_code(tmp_path):
     cases = [c for s in xml for c in s]
     assert [c.name for c in cases] == [c["name"] for c in rep["checks"]]
     assert all(c.is_passed for c in cases)
+    # the suite's time is the run's wall time; a check takes none of its own and says none
+    # (not time="0" on every case)
+    root = ET.parse(junit).getroot()
+    assert float(root.find("testsuite").get("time")) > 0.0
+    assert all(tc.get("time") is None for tc in root.iter("testcase"))
 
 
 def test_a_fail_safe_episode_is_not_a_mode_switch_but_chatter_is():

@@ -117,7 +117,7 @@ def partial_report(out: Path, cfg, route, args: RunSpec, n: int, dt: float, logg
         print(f"run failed: could not write the partial report: {exc}", file=sys.stderr)
     if args.junit:
         verdict.write_junit(args.junit, _suite(route, args),
-                            [verdict.Check(**c) for c in report["checks"]])
+                            [verdict.Check(**c) for c in report["checks"]], None)
     if args.json:
         from hil.cli import emit
 
