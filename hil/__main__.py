@@ -108,6 +108,11 @@ def _sim(args) -> int:
                 fail(_cannot_write(args.out, exc), 1)
     if cal is not cfg:
         report["calibration"] = cal.source
+    # the ride: every scored segment against its mode's acceptance (hil.validate.ride)
+    from hil.validate import ride
+
+    ride.attach(report, cfg, route, params or sil.ecu_params(cfg, args.mode, opts=opts,
+                                                             gains_file=gains), opts)
     if args.out:
         try:
             logs = [log.path, *convert(log.path, formats, start_us)]

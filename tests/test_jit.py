@@ -16,6 +16,7 @@ from hil.config import default_vehicle
 from hil.nodes import sil
 from hil.sim.plant import QuarterCarPlant
 from hil.sim.road import constant_route, load_route
+from hil.validate import ride
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_vehicle()
@@ -32,7 +33,9 @@ def test_compiled_and_interpreted_runs_give_the_same_report():
     res = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, env=env, timeout=900)
     assert res.returncode == 0, res.stderr[-2000:]
     interpreted = json.loads(res.stdout)
-    compiled, _ = sil.run(CFG, load_route("full_road_section"), "auto", 3, duration_s=4.0)
+    route = load_route("full_road_section")
+    compiled, _ = sil.run(CFG, route, "auto", 3, duration_s=4.0)
+    ride.attach(compiled, CFG, route, sil.ecu_params(CFG, "auto"))    # (as hil sim judges)
     compiled = json.loads(json.dumps(_clean(compiled)))      # (NaN as the CLI writes it)
     assert compiled["segments"][0]["scored"]                  # (4 s: 1 s past the settling)
     assert interpreted["akf_r_guard_hits"] > 0

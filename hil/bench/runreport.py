@@ -56,6 +56,8 @@ def write_report(out: Path, cfg, route, args: RunSpec, n: int, dt: float, summar
             if k in summaries["plant"]}
     verdict.attach(report, run_checks(report, summaries, logger.log.by_id, n, dt, args,
                                       sil.fault_ticks(trace)))
+    if not args.inject:          # (the ride of a run with faults: the fault campaign's)
+        _judge_ride(report, cfg, route, args)
     write_outputs(out, report, trace, cfg, route)
     if args.junit:
         verdict.write_junit(args.junit, _suite(route, args),
@@ -64,6 +66,19 @@ def write_report(out: Path, cfg, route, args: RunSpec, n: int, dt: float, summar
     if not args.json:
         print(f"report: {out / 'report.md'} (and report.json, bus.log, figures)")
     return verdict.exit_code(report)
+
+
+def _judge_ride(report: dict, cfg, route, args: RunSpec) -> None:
+    """``hil.validate.ride`` with the ECU's calibration (the ECU node's, built again from the
+    design cache: the car of ``--calibration``, else the driven one)."""
+    from hil.cli import cars_or_exit, design_or_exit
+    from hil.validate import ride
+
+    _, cal = cars_or_exit(args.vehicle, args.calibration)
+    opts = design_or_exit(args.design)
+    params = sil.ecu_params(cal, args.mode, opts=opts,
+                            gains_file=Path(args.gains) if args.gains else None)
+    ride.attach(report, cfg, route, params, opts)
 
 
 def _suite(route, args) -> str:

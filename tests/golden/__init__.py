@@ -107,6 +107,10 @@ def run(s: Scenario, trace: Optional[list] = None, ticks: Optional[list] = None)
         finally:
             log.close()
         buslog_sha = hashlib.sha256(log.path.read_bytes()).hexdigest()
+    # (the scenario's command is hil sim's: its ride verdict too, hil.validate.ride)
+    from hil.validate import ride
+
+    ride.attach(report, cfg, route, sil.ecu_params(cfg, s.mode))
     if trace is not None:
         trace.append(tr)
     if ticks is not None:
