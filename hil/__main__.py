@@ -143,7 +143,9 @@ def _run(args) -> int:
     from hil.bench import supervisor
     from hil.bench.spec import RunSpec
 
-    return supervisor.run(RunSpec.from_args(args))
+    from hil.validate import ride
+
+    return supervisor.run(RunSpec.from_args(args), judge=ride.judge_run)
 
 
 def _node(args) -> int:

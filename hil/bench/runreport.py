@@ -37,7 +37,10 @@ def log_copies(logger: Optional[Logger], formats: tuple, start_us: int, say
 
 
 def write_report(out: Path, cfg, route, args: RunSpec, n: int, dt: float, summaries: dict,
-                 logger: Logger, wall: float, spec: BusSpec, logs: list[str]) -> int:
+                 logger: Logger, wall: float, spec: BusSpec, logs: list[str],
+                 judge=None) -> int:
+    """The report of a finished run with its verdict; ``judge(report, cfg, route, args)``
+    adds the checks of a layer above the bench (``hil run``'s ride: hil.validate.ride)."""
     from hil.report.figures import write_outputs
     from hil.report.render import finish, render_sil
 
@@ -56,8 +59,8 @@ def write_report(out: Path, cfg, route, args: RunSpec, n: int, dt: float, summar
             if k in summaries["plant"]}
     verdict.attach(report, run_checks(report, summaries, logger.log.by_id, n, dt, args,
                                       sil.fault_ticks(trace)))
-    if not args.inject:          # (the ride of a run with faults: the fault campaign's)
-        _judge_ride(report, cfg, route, args)
+    if judge is not None and not args.inject:   # (a run with faults: the fault campaign's)
+        judge(report, cfg, route, args)
     write_outputs(out, report, trace, cfg, route)
     if args.junit:
         verdict.write_junit(args.junit, _suite(route, args),
@@ -66,19 +69,6 @@ def write_report(out: Path, cfg, route, args: RunSpec, n: int, dt: float, summar
     if not args.json:
         print(f"report: {out / 'report.md'} (and report.json, bus.log, figures)")
     return verdict.exit_code(report)
-
-
-def _judge_ride(report: dict, cfg, route, args: RunSpec) -> None:
-    """``hil.validate.ride`` with the ECU's calibration (the ECU node's, built again from the
-    design cache: the car of ``--calibration``, else the driven one)."""
-    from hil.cli import cars_or_exit, design_or_exit
-    from hil.validate import ride
-
-    _, cal = cars_or_exit(args.vehicle, args.calibration)
-    opts = design_or_exit(args.design)
-    params = sil.ecu_params(cal, args.mode, opts=opts,
-                            gains_file=Path(args.gains) if args.gains else None)
-    ride.attach(report, cfg, route, params, opts)
 
 
 def _suite(route, args) -> str:

@@ -102,9 +102,10 @@ def _node_argvs(args: RunSpec, spec: BusSpec, out: Path, rt: int, key_file: Path
     return {"ecu": ecu, "app": app, "plant": plant}
 
 
-def run(args: RunSpec, on_bus=None) -> int:
+def run(args: RunSpec, on_bus=None, judge=None) -> int:
     """The run ``args`` specifies. ``on_bus(spec)``: called once the bus is up, before the
-    nodes start (the fault campaign attaches its outside clients there)."""
+    nodes start (the fault campaign attaches its outside clients there); ``judge``: more
+    checks of the finished run's report (``runreport.write_report``)."""
     from hil.cli import lock_out, log_options_or_exit
 
     cfg, route = _check_inputs(args)
@@ -150,7 +151,7 @@ def run(args: RunSpec, on_bus=None) -> int:
             partial_report(out, cfg, route, args, n, dt, s.logger, reason)
             return code
         return write_report(out, cfg, route, args, n, dt, summaries, s.logger,
-                            time.monotonic() - t_start, s.spec, logs)
+                            time.monotonic() - t_start, s.spec, logs, judge)
     except KeyboardInterrupt:     # (Ctrl-C once the nodes are down: the report is not whole)
         _say(f"interrupted while writing the report: the report and the log copies in {out} "
              "are incomplete (bus.log was flushed)")

@@ -20,15 +20,15 @@ the comfort BA and safety DTD bounds move by the gap between the car's own limit
 default car's, each under the per-drive bound over ``ratio_window_s`` (the campaign's limits,
 ``calib.linear.constrained_limits``, kept in the design cache: the window the designs hold
 their bounds over; this drive's own length is in the widening). The Eq. (43) sum is over the
-car's own limit, the same way. A segment driven in energy
-feedback, passive, or in more than one mode (``driven_mode``) has no ride bound: its row
-says so and no check is made. Faults injected into a run (``hil run --inject``) leave the
-ride unjudged: the fault campaign judges those runs."""
+car's own limit, the same way.
+
+A segment driven in energy feedback, passive, or in more than one mode (``driven_mode``) has
+no ride bound: its row says so and no check is made. Faults injected into a run (``hil run
+--inject``) leave the ride unjudged: the fault campaign judges those runs."""
 
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import numpy as np
 
@@ -146,12 +146,17 @@ def _relative_raise(cfg, route, rs, mode: str, window: float) -> dict:
     return {RELATIVE_KEY[mode]: own - ref}
 
 
-def params_of(cfg, mode: str, *, opts=None, gains_file=None,
-              params: Optional[object] = None):
-    """The calibration whose laws the ride is judged with: ``params`` (the ECU's, when the
-    caller has it), else the one ``hil.nodes.sil.ecu_params`` builds for ``cfg``."""
-    if params is not None:
-        return params
+def judge_run(report: dict, cfg, route, args) -> None:
+    """``attach`` for ``hil run`` (``hil.bench.supervisor.run``'s judge) with the ECU node's
+    calibration, built again from the design cache: the car of ``--calibration``, else the
+    driven one, with ``--design`` and ``--gains``."""
+    from pathlib import Path
+
+    from hil.cli import cars_or_exit, design_or_exit
     from hil.nodes import sil
 
-    return sil.ecu_params(cfg, mode, opts=opts, gains_file=gains_file)
+    _, cal = cars_or_exit(args.vehicle, args.calibration)
+    opts = design_or_exit(args.design)
+    params = sil.ecu_params(cal, args.mode, opts=opts,
+                            gains_file=Path(args.gains) if args.gains else None)
+    attach(report, cfg, route, params, opts)
