@@ -9,7 +9,7 @@ import os
 from hil import config
 from hil.cli import (add_cache_argument, add_calibration_argument, add_design_argument,
                      add_json_argument, add_log_arguments, add_vehicle_argument, positive_float,
-                     seed_arg)
+                     positive_int, seed_arg)
 from hil.report import verdict
 
 
@@ -210,6 +210,8 @@ def _node_parsers(sub) -> None:
                    help="only used with --controller (the mode whose controller it replaces)")
     p.add_argument("--controller", choices=CONTROLLER_CHOICES)
     p.add_argument("--gains", metavar="FILE")
+    p.add_argument("--ticks", type=positive_int, metavar="N", help="realtime: the drive's "
+                   "samples; after the last, no timer ticks (the drive is over; hil run sets it)")
     add_design_argument(p)
     _fixed_argument(p)
     common(p)

@@ -255,3 +255,72 @@ def test_realtime_ecu_detects_a_silent_plant_and_tells_the_driver(tmp_path):
     later = [codec.decode(f[1], f[2]).signals for f in frames
              if t_stop + 1.0 < f[0] < t_stop + 2.0 and f[1] == ID["ACTUATOR_CMD"]]
     assert later and any(c["ENABLE"] for c in later)
+
+
+class _Frames:
+    """A bus that delivers ``n`` sensor frames 1 ms apart, then silence; stops the listener
+    0.1 s after the last."""
+
+    def __init__(self, n, stop):
+        from hil.nodes import ID
+
+        self.n, self.stop, self.sent, self.sensors = n, stop, 0, ID["PLANT_SENSORS"]
+        self.t_end = None
+
+    def recv(self, timeout):
+        import can
+
+        if self.sent < self.n:
+            self.sent += 1
+            time.sleep(0.001)
+            return can.Message(arbitration_id=self.sensors, data=bytes(8))
+        self.t_end = self.t_end or time.monotonic()
+        if time.monotonic() - self.t_end > 0.1:
+            self.stop.flag = True
+        time.sleep(min(timeout, 0.002))
+        return None
+
+    def send(self, msg):
+        pass
+
+
+class _Node:
+    """An ECU node that ticks once per sensor frame, and counts its timer's ticks."""
+
+    class params:
+        dt_s = 0.001
+
+    def __init__(self):
+        self.pending, self.timer = 0, 0
+
+    def on_frame(self, fid, data):
+        self.pending += 1
+        return []
+
+    def ready(self):
+        return self.pending > 0
+
+    def tick(self):
+        self.pending -= 1
+        return []
+
+    def timer_tick(self):
+        self.timer += 1
+        self.pending += 1
+
+    def record(self):
+        pass
+
+
+@pytest.mark.parametrize("samples, timer", [(None, True), (20, False)])
+def test_the_ecus_timer_stops_at_the_end_of_the_drive(samples, timer):
+    """Realtime: the silence after the drive's last sensor frame (hil run passes its length)
+    is no timeout; without the length it is (the timer ticks, as for a silent plant)."""
+    import types
+
+    from hil.bench.procs import WATCHDOG_TICKS, run_listener
+
+    stop = types.SimpleNamespace(flag=False)
+    node = _Node()
+    run_listener(node, _Frames(20, stop), stop, watchdog_ticks=WATCHDOG_TICKS, samples=samples)
+    assert (node.timer > 0) is timer, node.timer

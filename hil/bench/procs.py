@@ -225,13 +225,17 @@ def _realtime_stats(node, lag, rtt, missed: int, missed_at) -> dict:
     return stats
 
 
-def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> None:
+def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0,
+                 samples: Optional[int] = None) -> None:
     """ECU and app: react to frames until stopped. ``watchdog_ticks`` (the ECU in realtime
     pacing): once sensor frames have started, when none has come for that many tick periods,
     the ECU's own timer runs a tick without sensor data (fail-safe, timeout named) every
     period until frames come back; the bus going silent is thus detected and reported. After
     ``QUIET_AFTER_S`` of silence the timer ticks every ``QUIET_PERIOD_S`` only: the fail-safe
-    state and its status go on, at a rate that cannot fill a log."""
+    state and its status go on, at a rate that cannot fill a log. ``samples``: the drive's
+    length in sensor frames (``hil run``): once that many have come the drive is over (the
+    ignition off), and the silence until the supervisor stops the node is no timeout (it
+    made every realtime run end by confirming U0401-87 frame_timeout)."""
     tick = getattr(node, "tick", None)
     dt = getattr(getattr(node, "params", None), "dt_s", 0.001)
     from hil.nodes import ID
@@ -239,6 +243,7 @@ def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> 
     sensors = ID["PLANT_SENSORS"]
     last = None                      # time of the last sensor frame or timer tick
     last_frame = 0.0                 # time of the last sensor frame
+    seen = 0                         # sensor frames received
     while not stop.flag:
         timeout = 0.2
         if watchdog_ticks and last is not None:
@@ -250,6 +255,9 @@ def run_listener(node, bus: can.BusABC, stop: Stop, watchdog_ticks: int = 0) -> 
                 _send(bus, replies)
             if msg.arbitration_id == sensors:
                 last = last_frame = time.monotonic()
+                seen += 1
+                if samples is not None and seen >= samples:
+                    watchdog_ticks = 0        # (the drive is over)
         if tick is None:
             continue
         now = time.monotonic()
@@ -422,7 +430,8 @@ def main(role: str, args) -> int:
             if role == "app" and node.policy == "interactive":
                 threading.Thread(target=_stdin_keys, args=(node, stop), daemon=True).start()
             run_listener(node, bus, stop, watchdog_ticks=WATCHDOG_TICKS
-                         if role == "ecu" and args.pace == "realtime" else 0)
+                         if role == "ecu" and args.pace == "realtime" else 0,
+                         samples=getattr(args, "ticks", None) if role == "ecu" else None)
     except PartnerSilent as exc:
         print(f"{role}: {exc}", file=sys.stderr, flush=True)
         code = EXIT_PARTNER

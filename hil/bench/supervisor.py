@@ -67,8 +67,8 @@ def _check_inputs(args: RunSpec):
     return cfg, route
 
 
-def _node_argvs(args: RunSpec, spec: BusSpec, out: Path, rt: int, key_file: Path
-                ) -> dict[str, list[str]]:
+def _node_argvs(args: RunSpec, spec: BusSpec, out: Path, rt: int, key_file: Path,
+                n: Optional[int] = None) -> dict[str, list[str]]:
     common = ["-i", spec.interface, "-c", spec.channel, "--out", str(out), "--pace", args.pace,
               "--key-file", str(key_file)]
     car = ["--vehicle", args.vehicle] if args.vehicle else []
@@ -83,6 +83,8 @@ def _node_argvs(args: RunSpec, spec: BusSpec, out: Path, rt: int, key_file: Path
             ecu += [flag, value]
     if args.fixed_point:
         ecu += ["--fixed-point"]
+    if n is not None:             # (the drive's samples: after the last, no timeout)
+        ecu += ["--ticks", str(n)]
     app = [*common, "--mode", args.mode, "--quiet", "--rt-priority", str(rt_of(rt, "app"))]
     if args.driver:
         app += ["--policy", args.driver]
@@ -121,6 +123,7 @@ def run(args: RunSpec, on_bus=None, judge=None) -> int:
     if args.duration is not None:
         n = min(n, int(round(args.duration / dt)))
     s = _Session(args, out, dt)
+    s.n = n
     code, reason, summaries = 0, None, None
     t_start = time.monotonic()
     previous = on_signals()
@@ -179,6 +182,7 @@ class _Session:
 
     def __init__(self, args: RunSpec, out: Path, dt: float):
         self.args, self.out, self.dt = args, out, dt
+        self.n: Optional[int] = None       # the drive's ticks (the ECU's last sample)
         self.hub: Optional[Hub] = None
         self.nodes: dict[str, Node] = {}
         self.logger: Optional[Logger] = None
@@ -217,7 +221,7 @@ class _Session:
 
     def start_nodes(self, key_file: Path) -> None:
         """The ECU and the app, then (both READY) the plant, which owns simulated time."""
-        argvs = _node_argvs(self.args, self.spec, self.out, self.rt, key_file)
+        argvs = _node_argvs(self.args, self.spec, self.out, self.rt, key_file, self.n)
         for name in ("ecu", "app"):
             self.nodes[name] = Node(name, argvs[name], self.out, self.env)
         for name in ("ecu", "app"):
