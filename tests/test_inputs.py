@@ -2,6 +2,7 @@
 2, before anything large is allocated; what cannot be scored is flagged, not scored."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -134,6 +135,23 @@ def test_segments_shorter_than_the_settling_window_are_flagged_not_scored(tmp_pa
     assert short["scored"] is False and "not scored" in short["note"]
     assert short["ratio"] == {"ba": None, "sws": None, "dtd": None}
     assert long_["scored"] is True and 0 < long_["ratio"]["ba"] < 2
+
+
+def test_a_grade_beyond_the_estimates_cap_is_not_scored_for_accuracy(tmp_path):
+    """The grade estimate names A-D; on F it reads D, its cap, which is no right answer: the
+    F segment's grade accuracy is not scored (NaN, null in the JSON) and the drive's is the B
+    segment's alone (it was 1.0 on F, D counted as right)."""
+    from hil.nodes.sil import run
+    from hil.sim.road import load_route
+
+    route = load_route(_route(tmp_path, _segment(length="400") +
+                              _segment(length="200", speed="10", grade='grade = "F"')))
+    rep, trace = run(default_vehicle(), route, "comfort", 1)
+    b, f = rep["segments"]
+    assert f["scored"] and math.isnan(f["grade_accuracy"]) and 0.0 < b["grade_accuracy"] <= 1.0
+    assert rep["grade_accuracy"] == b["grade_accuracy"]
+    late = trace.segment == 1
+    assert (trace.true_grade[late] == 3).all()              # (SIM_TRUTH: capped at D)
 
 
 def test_a_full_disk_under_out_is_one_line_and_leaves_no_temporary_file(tmp_path, monkeypatch,

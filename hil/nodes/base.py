@@ -37,8 +37,19 @@ def rx_spec(codec: Codec, check: safety.RxCheck, dt_s: float) -> safety.FrameSpe
                    recover_frames=check.recover_frames)
 
 
+# the grades the ECU's estimate names (firmware.grade: 0..3, A to D); a rougher road (E-H)
+# reads as D, its cap: SIM_TRUTH's TRUE_GRADE carries it capped, and a drive's grade accuracy
+# scores only the segments the estimate can name (hil.nodes.sil)
+NAMED_GRADES = 4
+
+
 def true_grade_index(grade: str) -> int:
-    return min(3, GRADES.index(grade))
+    return min(NAMED_GRADES - 1, GRADES.index(grade))
+
+
+def grade_named(grade: str) -> bool:
+    """The ECU's grade estimate can name ``grade`` (A-D)."""
+    return GRADES.index(grade) < NAMED_GRADES
 
 
 class Tx:

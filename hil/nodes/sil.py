@@ -23,9 +23,10 @@ from firmware.modes import REASON_ROAD_HOLDING
 from hil.config import CONTROLLERS, RUN_MODES as MODES, ConfigError
 from hil.nodes import fastsil
 from hil.nodes import AppNode, EcuNode, PlantNode, run_in_process
+from hil.nodes.base import grade_named, true_grade_index
 from hil.report import verdict
 from hil.sim.metrics import rms
-from hil.sim.road import GRADES, Route
+from hil.sim.road import Route
 from hil.transport import secoc
 from hil.transport.codec import Codec
 
@@ -239,9 +240,11 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
                "dtd_rms_m": rms(a["dtd"][sel]), "force_rms_n": rms(a["force"][sel])}
         pas = {"ba_rms_mps2": rms(a["p_ba"][sel]), "sws_rms_m": rms(a["p_sws"][sel]),
                "dtd_rms_m": rms(a["p_dtd"][sel]), "force_rms_n": 0.0}
+        named = grade_named(seg.grade)
         hits = int(np.count_nonzero(a["grade_est"][sel] == trace.true_grade[sel]))
-        acc_hits += hits
-        acc_n += len(sel)
+        if named:                       # (E-H: beyond the estimate's cap, not scored)
+            acc_hits += hits
+            acc_n += len(sel)
         t = len(sel) * dt
         first, last_i = sel[0], sel[-1]
         harvested = float(a["stored"][last_i] - a["stored"][first - 1 if first else 0])
@@ -252,7 +255,7 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
             "scored": True, "active": act, "passive": pas,
             "ratio": {k: act[f"{k}_rms_{u}"] / pas[f"{k}_rms_{u}"]
                       for k, u in (("ba", "mps2"), ("sws", "m"), ("dtd", "m"))},
-            "grade_accuracy": hits / len(sel),
+            "grade_accuracy": hits / len(sel) if named else float("nan"),
             "harvested_j": harvested, "consumed_j": consumed,
             "harvested_w": harvested / t, "road_power_w": road_power,
             "road_estimate_rmse_m": rms(a["road_est"][sel] - a["zf"][sel]),
@@ -261,7 +264,8 @@ def _report(cfg, route, mode, controller, seed, trace, energy, digest, guard_hit
         })
     switches = mode_switches(a["mode"], a["faults"], a["reason"])
     grades_seq = [s.grade for s in route.segments]
-    grade_changes = sum(1 for x, y in zip(grades_seq, grades_seq[1:]) if min(3, GRADES.index(x)) != min(3, GRADES.index(y)))
+    grade_changes = sum(1 for x, y in zip(grades_seq, grades_seq[1:])
+                        if true_grade_index(x) != true_grade_index(y))
     return {
         "route": route.name, "mode": mode, "controller": controller, "seed": seed,
         "vehicle": cfg.source, "duration_s": len(trace.segment) * dt,

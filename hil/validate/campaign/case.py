@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import os
 import socket
 import time
@@ -196,7 +197,9 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
     if not row["scored"]:
         return row
     grade_why = []
-    if acceptance and not seg.get("grade_accuracy", 1.0) >= GRADE_ACCURACY:
+    accuracy = seg.get("grade_accuracy", 1.0)
+    # (NaN: a grade beyond what the estimate names, E-H, is not scored: hil.nodes.sil)
+    if acceptance and math.isfinite(accuracy) and accuracy < GRADE_ACCURACY:
         # the road grade the ECU estimates, right for this share of the segment at least
         grade_why = [f"grade_accuracy {seg.get('grade_accuracy', float('nan')):.3f} < "
                      f"{GRADE_ACCURACY:g}"]
