@@ -100,12 +100,32 @@ def markdown(report: dict, figures: list[str]) -> str:
             f"{r['dtd']:.3f} | {a['ba_rms_mps2']:.3f} | {1e3 * a['sws_rms_m']:.2f} | "
             f"{1e3 * a['dtd_rms_m']:.2f} | {s['grade_accuracy']:.2f} | {s['harvested_j']:.1f} | "
             f"{s['consumed_j']:.1f} | {1e3 * s['road_estimate_rmse_m']:.1f} |")
-    lines += ["", ENERGY_COLUMNS]
-    lines += ["", "Frames sent: " + ", ".join(
+    lines += ["", ENERGY_COLUMNS, ""] + _ride_lines(report)
+    lines += ["Frames sent: " + ", ".join(
         f"{node} {sum(c.values())}" for node, c in report["frames_sent"].items()), ""]
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
+
+
+def _ride_lines(report: dict) -> list[str]:
+    """The ride verdict's rows (``report["ride"]``, hil.validate.ride) as a table."""
+    rows = report.get("ride")
+    if not rows:
+        return []
+    out = ["The ride: each scored segment against its mode's acceptance, each bound widened by "
+           "the scatter its window adds over the designs' 180 s (`hil/validate/ride.py`).", "",
+           "| segment | mode | ratio ≤ limit | worst | |", "|---|---|---|---|---|"]
+    for r in rows:
+        seg = f"{r['segment']}: {r['grade']}@{r['speed_mps']:g} m/s"
+        if not r["judged"]:
+            out.append(f"| {seg} | {r.get('mode', '–')} | {r['why']} | | |")
+            continue
+        bounds = ", ".join(f"{k} {b['got']:.3f} ≤ {b['limit']:.3f}"
+                           for k, b in r["bounds"].items())
+        out.append(f"| {seg} | {r['mode']} | {bounds} | {r['worst']:.3f} | "
+                   f"{'pass' if r['ok'] else 'FAIL'} |")
+    return out + [""]
 
 
 def write_figures(out: Path, report: dict, trace, cfg=None, route=None) -> list[Path]:
