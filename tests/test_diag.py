@@ -254,6 +254,33 @@ def test_status_byte_through_a_fault_a_pass_and_operation_cycles():
     assert not dtc.clear(mem, 0x123456)
 
 
+def test_a_frame_timeout_is_stored_only_when_it_persists():
+    """U0401-87: a late or single lost frame (up to TIMEOUT_DEBOUNCE - 1 ticks with the
+    timeout bit, passes between) is no stored DTC; TIMEOUT_DEBOUNCE ticks in a row are. A
+    checksum fault is stored at its first report, as before."""
+    m = Memory()
+    e = m.mem.entries[dtc.BY_NAME["frame_timeout"]]
+    n = dtc.TIMEOUT_DEBOUNCE
+    assert n > 3
+    t = 0
+    for burst in (1, 3, n - 1, 2):                         # the realtime bench's late frames
+        for _ in range(burst):
+            t += 1
+            m.update(t, safety.FAULT_TIMEOUT)
+        for _ in range(dtc.PASS_REPORTS):
+            t += 1
+            m.update(t, 0)
+    assert not e.status & (dtc.TF | dtc.CDTC | dtc.PDTC) and e.occurrences == 0
+    for k in range(n):
+        t += 1
+        m.update(t, safety.FAULT_TIMEOUT)
+        assert bool(e.status & dtc.CDTC) is (k == n - 1)    # the n-th in a row stores it
+    assert e.first_tick == t and e.occurrences == 1
+    c = m.mem.entries[dtc.BY_NAME["frame_checksum"]]
+    m.update(t + 1, safety.FAULT_CHECKSUM)
+    assert c.status & dtc.CDTC
+
+
 def test_dtc_setting_off_freezes_the_memory():
     m = Memory()
     m.mem.setting_on = False
