@@ -17,9 +17,9 @@ relatively at most as much as its most scattered ratio, so its bound takes that 
 
 A car other than the default one is judged as a campaign's ``relative`` acceptance does:
 the comfort BA and safety DTD bounds move by the gap between the car's own limit and the
-default car's, each under the per-drive bound over ``ratio_window_s`` (the campaign's limits,
-``calib.linear.constrained_limits``, kept in the design cache: the window the designs hold
-their bounds over; this drive's own length is in the widening). The Eq. (43) sum is over the
+default car's, each under the per-drive bound over ``ratio_window_s`` (the campaign's
+``relative_raise`` over the window the designs hold their bounds over; this drive's own
+length is in the widening). The Eq. (43) sum is over the
 car's own limit, the same way.
 
 A segment driven in energy feedback, passive, or in more than one mode (``driven_mode``) has
@@ -33,12 +33,11 @@ import math
 import numpy as np
 
 from hil.report import verdict
-from hil.validate.acceptance import ACCEPTANCE, RELATIVE_KEY
+from hil.validate.acceptance import ACCEPTANCE
 
 RATIOS = ("ba", "sws", "dtd")
 # the designed state feedback each judged mode drives (firmware.params.ControlParams)
 LAW = {"comfort": "k_comfort", "safety": "k_safety", "comprehensive": "k_comprehensive"}
-_LIMIT_KEY = {"comfort": "comfort", "safety": "safety"}
 
 
 def attach(report: dict, cfg, route, params, opts=None) -> dict:
@@ -84,7 +83,7 @@ def judge(report: dict, cfg, route, params, opts=None) -> list[dict]:
 
 def _bounds(cfg, route, rs, mode: str, ratio: dict, window: float, params, opts) -> dict:
     from calib.model import linear_model, window_scatter
-    from hil.validate.campaign.case import _LIMIT_GQ_M3
+    from hil.validate.campaign.case import _LIMIT_GQ_M3, _limits, judged_limit, relative_raise
 
     # (the ratios and their scatter do not depend on the road's roughness: the campaign's)
     model = linear_model(cfg.vehicle, _LIMIT_GQ_M3, rs.speed_mps, route.road.convention,
@@ -94,14 +93,14 @@ def _bounds(cfg, route, rs, mode: str, ratio: dict, window: float, params, opts)
     s_d = window_scatter(model, K, opts.ratio_window_s)[1]
     extra = {k: opts.ratio_window_z * max(0.0, float(a - b))
              for k, a, b in zip(RATIOS, s_t, s_d)}
-    raised = _relative_raise(cfg, route, rs, mode, opts.ratio_window_s)
+    raised = relative_raise(cfg.vehicle, rs, route, opts.ratio_window_s, mode)
     out = {}
     for key, bound in ACCEPTANCE[mode].items():
         if key == "max":                          # every ratio at most the bound
             for k in RATIOS:
                 out[k] = _one(ratio[k], bound, extra[k])
         elif key == "sum_eq43":                   # the sum over the car's own Eq. (43) limit
-            eq43 = _limit(cfg.vehicle, route, rs, "eq43", opts.ratio_window_s)[0]
+            eq43 = judged_limit(_limits(cfg.vehicle, rs, route, opts.ratio_window_s)["eq43"])
             out[key] = _one(sum(ratio[k] for k in RATIOS) / eq43, bound, max(extra.values()))
         else:
             out[key] = _one(ratio[key], bound + raised.get(key, 0.0), extra[key])
@@ -112,38 +111,6 @@ def _one(got: float, bound: float, widen: float) -> dict:
     limit = bound * math.exp(widen)
     return {"got": float(got), "bound": float(bound), "widened": float(limit - bound),
             "limit": float(limit)}
-
-
-def _limit(vehicle, route, rs, name: str, window: float) -> tuple[float, bool]:
-    """The vehicle's ``name`` limit at the segment's speed under the per-drive bound over
-    ``window`` (the campaign's ``_limits``, from the design cache), and whether it is the
-    bounded one (else the unbounded: no controller holds the bound over such a drive)."""
-    from hil.validate.campaign.case import _limits
-
-    lim = _limits(vehicle, rs, route, window)[name]
-    return (lim["free"], False) if lim["bounded"] is None else (lim["bounded"], True)
-
-
-def _relative_raise(cfg, route, rs, mode: str, window: float) -> dict:
-    """The relative acceptance's move of ``mode``'s bound for this car (the campaign's): its
-    own limit less the default car's, both under the per-drive bound where both have one;
-    nothing for the default car itself."""
-    from hil.config import default_vehicle
-
-    if mode not in RELATIVE_KEY:
-        return {}
-    base = default_vehicle().vehicle
-    if cfg.vehicle == base:
-        return {}
-    name = _LIMIT_KEY[mode]
-    own, own_b = _limit(cfg.vehicle, route, rs, name, window)
-    ref, ref_b = _limit(base, route, rs, name, window)
-    if own_b != ref_b:                        # (compare like with like: both unbounded)
-        from hil.validate.campaign.case import _limits
-
-        own = _limits(cfg.vehicle, rs, route, window)[name]["free"]
-        ref = _limits(base, rs, route, window)[name]["free"]
-    return {RELATIVE_KEY[mode]: own - ref}
 
 
 def judge_run(report: dict, cfg, route, args) -> None:

@@ -201,8 +201,7 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
     # (NaN: a grade beyond what the estimate names, E-H, is not scored: hil.nodes.sil)
     if acceptance and math.isfinite(accuracy) and accuracy < GRADE_ACCURACY:
         # the road grade the ECU estimates, right for this share of the segment at least
-        grade_why = [f"grade_accuracy {seg.get('grade_accuracy', float('nan')):.3f} < "
-                     f"{GRADE_ACCURACY:g}"]
+        grade_why = [f"grade_accuracy {accuracy:.3f} < {GRADE_ACCURACY:g}"]
         row["ok"], row["why"] = False, grade_why[0]
     if driven not in JUDGED:
         return row
@@ -210,27 +209,43 @@ def judge_segment(cfg, route, rs, seg: dict, mode: str, acceptance: bool | str,
     r = seg["ratio"]
     name, key = JUDGED[driven]
     value = judged_value(driven, r)
-    free = limits[key]["free"]
-    # (no bounded limit: a drive too short for any controller to hold the bound; its
-    # unbounded limit judges it)
-    limit = free if limits[key]["bounded"] is None else limits[key]["bounded"]
+    free, limit = limits[key]["free"], judged_limit(limits[key])
     row.update(limit_name=name, limit_value=limit, gap=value - limit, limit_free=free,
                gap_free=value - free, sigma=limits[key]["sigma"])
     why = []
     if acceptance:
-        raised = None
-        if acceptance == "relative" and driven in RELATIVE_KEY:
-            # the same margin above this vehicle's limit as above the default car's
-            from hil.config import default_vehicle
-
-            base = _limits(default_vehicle().vehicle, rs, route, window_s)
-            both = limits[key]["bounded"] is not None and base[key]["bounded"] is not None
-            ref = base[key]["bounded"] if both else base[key]["free"]
-            raised = {RELATIVE_KEY[driven]: (limit if both else free) - ref}
+        raised = (relative_raise(cfg.vehicle, rs, route, window_s, driven)
+                  if acceptance == "relative" else None)
         why = violations(driven, r, limit, raised)
     why = grade_why + why
     row["ok"], row["why"] = not why, "; ".join(why)
     return row
+
+
+def judged_limit(lim: dict) -> float:
+    """The value of one of ``_limits``' entries a segment is judged by: the limit under the
+    per-drive bound, else (a drive too short for any controller to hold the bound) the
+    unbounded one."""
+    return lim["free"] if lim["bounded"] is None else lim["bounded"]
+
+
+def relative_raise(vehicle, rs, route, window_s: float, mode: str) -> dict:
+    """The ``relative`` acceptance's move of ``mode``'s bound (``RELATIVE_KEY``; {} for a
+    mode without one): the same margin above this vehicle's limit as above the default
+    car's, both under the per-drive bound over ``window_s`` where both have one, else both
+    unbounded. 0 for the default car itself (its limits are not computed for it)."""
+    from hil.config import default_vehicle
+
+    if mode not in RELATIVE_KEY:
+        return {}
+    base_vehicle = default_vehicle().vehicle
+    if vehicle == base_vehicle:
+        return {RELATIVE_KEY[mode]: 0.0}
+    key = JUDGED[mode][1]
+    own = _limits(vehicle, rs, route, window_s)[key]
+    base = _limits(base_vehicle, rs, route, window_s)[key]
+    which = "bounded" if own["bounded"] is not None and base["bounded"] is not None else "free"
+    return {RELATIVE_KEY[mode]: own[which] - base[which]}
 
 
 # per mode with a limit: the limit's name in the database and in calib.linear
